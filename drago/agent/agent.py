@@ -1,0 +1,156 @@
+"""One TD-MPC agent: task heads over a shared world model, with its optimizers and planner state.
+
+The world model and its optimizer are passed in, not owned: a continual method decides whether the
+world model is fresh or carried over, and DRAGO's learner and reviewer share one of each.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from drago.agent.buffer import Batch
+from drago.agent.losses import model_losses, policy_loss
+from drago.agent.networks import TaskHeads, WorldModel, linear_schedule
+from drago.agent.planner import PlanSettings, RewardBonus, plan_continuous, plan_discrete
+from drago.config import AgentConfig
+
+
+class Agent:
+    """TD-MPC heads (reward, policy, twin Q) trained and planned against a given world model.
+
+    Args:
+        world_model: the shared dynamics; this agent trains it only when asked to.
+        world_optimizer: the optimizer of the world model's parameters (shared between agents).
+        cfg: agent settings.
+        discrete: one-hot actions (grid) or continuous actions in [-1, 1].
+        reviewer: use the reviewer's PER priority (r + 2 + |TD errors|).
+    """
+
+    def __init__(self, world_model: WorldModel, world_optimizer: torch.optim.Optimizer, cfg: AgentConfig,
+                 discrete: bool, reviewer: bool = False):
+        self.world_model = world_model
+        self.world_optimizer = world_optimizer
+        self.cfg = cfg
+        self.discrete = discrete
+        self.reviewer = reviewer
+        device = next(world_model.parameters()).device
+        self.heads = TaskHeads(world_model.obs_dim, world_model.action_dim, cfg.mlp_dim, discrete).to(device)
+        # The policy has its own optimizer: the model loss never reaches it and the policy loss must
+        # not move the critics.
+        self.model_optimizer = torch.optim.Adam(
+            [*self.heads.reward.parameters(), *self.heads.q.parameters()], lr=cfg.lr)
+        self.policy_optimizer = torch.optim.Adam(self.heads.policy.parameters(), lr=cfg.lr)
+        self.std_floor = cfg.std_schedule_start  # CEM std floor, advanced by updates only (spec §2.5)
+        self._warm_mean: torch.Tensor | None = None
+        self.device = device
+
+    # ------------------------------------------------------------------ acting
+    def planning_horizon(self, step: int) -> int:
+        return int(min(self.cfg.horizon, linear_schedule(1, self.cfg.horizon, self.cfg.horizon_schedule_steps, step)))
+
+    def plan_settings(self, step: int) -> PlanSettings:
+        c = self.cfg
+        return PlanSettings(horizon=self.planning_horizon(step), iterations=c.iterations, num_samples=c.num_samples,
+                            num_elites=c.num_elites, num_policy_trajectories=int(c.mixture_coef * c.num_samples),
+                            temperature=c.temperature, momentum=c.momentum, discount=c.discount, use_q=c.use_q,
+                            policy_std=c.min_std, min_std=self.std_floor, max_std=c.max_std,
+                            elite_selection=c.elite_selection)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, step: int, eval_mode: bool, first_step: bool,
+            bonus: RewardBonus | None = None) -> np.ndarray:
+        """Plan one action for an observation (numpy in, numpy out)."""
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        settings = self.plan_settings(step)
+        if self.discrete:
+            action = plan_discrete(self.world_model, self.heads, obs_t, settings, eval_mode, bonus)
+        else:
+            warm = None if first_step else self._warm_mean
+            action, self._warm_mean = plan_continuous(self.world_model, self.heads, obs_t, settings, eval_mode,
+                                                      warm, bonus)
+        return action.cpu().numpy()
+
+    def random_action(self, rng: np.random.Generator) -> np.ndarray:
+        """Seed-phase action: a one-hot with the configured probabilities, or uniform in [-1, 1]."""
+        n = self.world_model.action_dim
+        if self.discrete:
+            action = np.zeros(n, dtype=np.float32)
+            action[rng.choice(n, p=np.asarray(self.cfg.random_action_probs))] = 1.0
+            return action
+        return rng.uniform(-1.0, 1.0, size=n).astype(np.float32)
+
+    # ---------------------------------------------------------------- learning
+    def update(self, batch: Batch, step: int, train_world_model: bool = True, policy_rows: int | None = None,
+               td_reward_bonus: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """One gradient step of spec §2.3 on a batch; returns metrics as tensors (no host sync).
+
+        Args:
+            batch: sequences from the replay buffer, rewards already final (relabelled if needed).
+            step: task-local step index u, for the EMA period and the std schedule.
+            train_world_model: include the consistency loss and step the world-model optimizer.
+            policy_rows: the policy loss uses only the first rows (DRAGO's reviewer: its own data).
+            td_reward_bonus: (H, B) reward added inside the TD target only.
+        """
+        c = self.cfg
+        self.std_floor = linear_schedule(c.std_schedule_start, c.min_std, c.std_schedule_steps, step)
+        losses = model_losses(
+            self.world_model, self.heads, batch.obs, batch.actions, batch.rewards, batch.next_obs,
+            horizon=c.horizon, rho=c.rho, discount=c.discount, policy_std=c.min_std,
+            consistency_coef=c.consistency_coef, reward_coef=c.reward_coef, value_coef=c.value_coef,
+            first_step_qr_only=c.first_step_qr_only, train_world_model=train_world_model,
+            reviewer_priority=self.reviewer, td_reward_bonus=td_reward_bonus)
+        # Scaling by 1/H is TD-MPC's gradient scaling, written on the loss.
+        weighted = (batch.weights * losses.total).mean() / c.horizon
+
+        params = [*self.heads.reward.parameters(), *self.heads.q.parameters()]
+        self.model_optimizer.zero_grad(set_to_none=True)
+        if train_world_model:
+            self.world_optimizer.zero_grad(set_to_none=True)
+            params += list(self.world_model.dynamics.parameters())
+        weighted.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(params, c.grad_clip_norm)
+        self.model_optimizer.step()
+        if train_world_model:
+            self.world_optimizer.step()
+
+        rows = batch.obs.shape[0] if policy_rows is None else policy_rows
+        pi_loss = policy_loss(self.heads, losses.latents[:, :rows], c.rho, c.min_std)
+        self.policy_optimizer.zero_grad(set_to_none=True)
+        pi_params = list(self.heads.policy.parameters())
+        grads = torch.autograd.grad(pi_loss, pi_params)
+        for p, g in zip(pi_params, grads):
+            p.grad = g
+        pi_grad_norm = torch.nn.utils.clip_grad_norm_(pi_params, c.grad_clip_norm)
+        self.policy_optimizer.step()
+
+        if step % c.update_freq == 0:
+            self.heads.ema_update(c.tau)
+            if train_world_model:
+                self.world_model.ema_update(c.tau)
+
+        return {
+            "consistency_loss": losses.consistency.mean().detach(),
+            "reward_loss": losses.reward.mean().detach(),
+            "value_loss": losses.value.mean().detach(),
+            "pi_loss": pi_loss.detach(),
+            "total_loss": losses.total.mean().detach(),
+            "weighted_loss": weighted.detach(),
+            "grad_norm": grad_norm.detach(),
+            "pi_grad_norm": pi_grad_norm.detach(),
+            "mean_prediction_score": losses.prediction_score.detach(),
+            "priority": losses.priority[:rows],
+        }
+
+    # ------------------------------------------------------------- persistence
+    def state_dict(self) -> dict[str, Any]:
+        return {"heads": self.heads.state_dict(), "model_optimizer": self.model_optimizer.state_dict(),
+                "policy_optimizer": self.policy_optimizer.state_dict(), "std_floor": self.std_floor}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.heads.load_state_dict(state["heads"])
+        self.model_optimizer.load_state_dict(state["model_optimizer"])
+        self.policy_optimizer.load_state_dict(state["policy_optimizer"])
+        self.std_floor = state["std_floor"]

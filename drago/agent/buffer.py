@@ -1,0 +1,475 @@
+"""Prioritized episode replay buffer (spec §2.4).
+
+The buffer stores fixed-length episodes and samples (H+1)-long sequences
+with prioritized experience replay. Priorities live in a vectorised numpy
+sum tree so that sampling and priority write-back cost O(B log N) instead of
+the O(N) of TD-MPC's dense ``probs = p**alpha / sum`` approach.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+ArrayLike = np.ndarray | torch.Tensor
+
+__all__ = ["SumTree", "Batch", "EpisodeReplay"]
+
+
+class SumTree:
+    """Array-backed binary sum tree over non-negative leaf values.
+
+    The tree is a complete binary tree stored 1-indexed in a flat float64
+    array: the root is node 1, node ``k`` has children ``2k`` and ``2k+1`` and
+    the leaves occupy ``[P, 2P)`` where ``P`` is ``capacity`` rounded up to a
+    power of two. Padding leaves stay zero and are therefore never returned
+    by :meth:`find`. All operations are vectorised over a batch of leaves.
+
+    Args:
+        capacity: Number of usable leaves (>= 1).
+    """
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"SumTree capacity must be >= 1, got {capacity}")
+        self.capacity = int(capacity)
+        self._num_leaves = 1 << max(0, (self.capacity - 1).bit_length())
+        self._depth = self._num_leaves.bit_length() - 1
+        self._tree = np.zeros(2 * self._num_leaves, dtype=np.float64)
+        self._max = 0.0
+
+    @property
+    def total(self) -> float:
+        """Sum of all leaf values."""
+        return float(self._tree[1])
+
+    @property
+    def max(self) -> float:
+        """Running maximum of every value ever written to a leaf.
+
+        It never decreases, matching TD-MPC's ``priority_max``; it is meant
+        as the priority for new insertions, not as the exact current max.
+        """
+        return self._max
+
+    def _check_indices(self, indices: np.ndarray) -> np.ndarray:
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.capacity):
+            raise IndexError(f"SumTree leaf index out of range [0, {self.capacity})")
+        return idx
+
+    def update(self, indices: np.ndarray, values: np.ndarray) -> None:
+        """Set leaf values and refresh their ancestors.
+
+        With duplicate indices the last occurrence wins. Parents are recomputed
+        as ``left + right`` rather than adjusted by deltas, so no floating-point
+        drift accumulates over millions of updates.
+
+        Args:
+            indices: Leaf indices, shape (n,).
+            values: New non-negative finite values, shape (n,) or scalar.
+        """
+        idx = self._check_indices(indices)
+        vals = np.broadcast_to(np.asarray(values, dtype=np.float64), idx.shape)
+        if idx.size == 0:
+            return
+        if not np.all(np.isfinite(vals)) or np.any(vals < 0):
+            raise ValueError("SumTree values must be finite and non-negative")
+        # Keep the last write for duplicated leaves (numpy's fancy assignment
+        # order with duplicates is not a documented guarantee).
+        rev_unique, rev_pos = np.unique(idx[::-1], return_index=True)
+        vals = vals[::-1][rev_pos]
+        idx = rev_unique
+        nodes = idx + self._num_leaves
+        self._tree[nodes] = vals
+        self._max = max(self._max, float(vals.max()))
+        for _ in range(self._depth):
+            nodes = np.unique(nodes >> 1)
+            self._tree[nodes] = self._tree[2 * nodes] + self._tree[2 * nodes + 1]
+
+    def values(self, indices: np.ndarray) -> np.ndarray:
+        """Return leaf values for ``indices`` (float64 array of the same shape)."""
+        idx = np.asarray(indices, dtype=np.int64)
+        flat = self._check_indices(idx)
+        return self._tree[flat + self._num_leaves].reshape(idx.shape)
+
+    def __getitem__(self, indices: np.ndarray | int) -> np.ndarray | float:
+        if np.isscalar(indices):
+            return float(self.values(np.asarray([indices]))[0])
+        return self.values(np.asarray(indices))
+
+    def find(self, prefix_sums: np.ndarray) -> np.ndarray:
+        """Find, for each prefix value v, the leaf i with cumsum_{<i} <= v < cumsum_{<=i}.
+
+        Values are clipped into ``[0, total]``. The descent never enters a
+        zero-sum subtree, so a positive-valued leaf is always returned when
+        ``total > 0`` even if rounding pushes ``v`` past the last boundary.
+
+        Args:
+            prefix_sums: Prefix values, shape (n,).
+
+        Returns:
+            Leaf indices, int64 array of shape (n,).
+        """
+        if self.total <= 0.0:
+            raise ValueError("SumTree.find called on a tree whose total is 0")
+        v = np.clip(np.asarray(prefix_sums, dtype=np.float64).reshape(-1), 0.0, self.total)
+        node = np.ones(v.shape, dtype=np.int64)
+        for _ in range(self._depth):
+            left = self._tree[2 * node]
+            right = self._tree[2 * node + 1]
+            go_right = (v >= left) & (right > 0.0)
+            v = np.where(go_right, v - left, v)
+            node = 2 * node + go_right
+        return node - self._num_leaves
+
+    def state_dict(self) -> dict[str, Any]:
+        """Return a copy of the tree state."""
+        # A tensor, not an ndarray, so checkpoints load with torch.load(weights_only=True).
+        return {"capacity": self.capacity, "tree": torch.from_numpy(self._tree.copy()), "max": self._max}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a state produced by :meth:`state_dict` of an equal-capacity tree."""
+        if int(state["capacity"]) != self.capacity:
+            raise ValueError(
+                f"SumTree capacity mismatch: state {state['capacity']}, tree {self.capacity}"
+            )
+        tree = torch.as_tensor(state["tree"], dtype=torch.float64).numpy()
+        if tree.shape != self._tree.shape:
+            raise ValueError("SumTree state has the wrong array shape")
+        self._tree[:] = tree
+        self._max = float(state["max"])
+
+
+@dataclass
+class Batch:
+    """A PER batch of (H+1)-long sequences.
+
+    Attributes:
+        obs: Start observations s_0, shape (B, obs_dim).
+        actions: a_t for t = 0..H, shape (H+1, B, act_dim).
+        rewards: r_t for t = 0..H, shape (H+1, B).
+        next_obs: s_{t+1} for t = 0..H, shape (H+1, B, obs_dim).
+        weights: Normalised PER importance weights, shape (B,).
+        indices: Sampled start indices (numpy int64, shape (B,)) for
+            priority write-back.
+    """
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    weights: torch.Tensor
+    indices: np.ndarray
+
+    @property
+    def batch_size(self) -> int:
+        """Number of sequences B."""
+        return int(self.obs.shape[0])
+
+    def concat(self, other: Batch) -> Batch:
+        """Concatenate two batches along the batch dimension (self first).
+
+        Args:
+            other: Batch with the same horizon and feature sizes.
+
+        Returns:
+            A new batch of size ``self.batch_size + other.batch_size``.
+        """
+        return Batch(
+            obs=torch.cat([self.obs, other.obs], dim=0),
+            actions=torch.cat([self.actions, other.actions], dim=1),
+            rewards=torch.cat([self.rewards, other.rewards], dim=1),
+            next_obs=torch.cat([self.next_obs, other.next_obs], dim=1),
+            weights=torch.cat([self.weights, other.weights], dim=0),
+            indices=np.concatenate([self.indices, other.indices]),
+        )
+
+    def with_rewards(self, rewards: torch.Tensor) -> Batch:
+        """Return a shallow copy with ``rewards`` replaced.
+
+        Args:
+            rewards: New rewards, shape (H+1, B).
+        """
+        if tuple(rewards.shape) != tuple(self.rewards.shape):
+            raise ValueError(
+                f"rewards shape {tuple(rewards.shape)} != {tuple(self.rewards.shape)}"
+            )
+        return dataclasses.replace(self, rewards=rewards)
+
+
+class EpisodeReplay:
+    """Prioritized replay of fixed-length episodes (spec §2.4).
+
+    Transition ``i`` is stored at flat index ``i`` (episode slot ``i // L``,
+    step ``i % L``); s_L of each episode is kept in a separate per-slot array.
+    The last ``horizon`` steps of each episode get priority 0, so every
+    sampled start t satisfies ``t + H <= L - 1`` and its whole sequence lies in
+    one episode. Whole episodes are overwritten FIFO once the buffer is full.
+
+    Sampling is stratified PER with replacement (also when full); TD-MPC
+    samples without replacement once full, which the spec lists as a quirk.
+
+    Args:
+        capacity: Capacity in transitions, rounded down to whole episodes.
+        obs_dim: Observation size.
+        act_dim: Action size.
+        horizon: H; sequences have H+1 steps.
+        episode_length: L, steps per episode (must exceed ``horizon``).
+        alpha: PER priority exponent.
+        beta: PER importance-weight exponent.
+        device: Torch device for the stored tensors and returned batches.
+    """
+
+    PRIORITY_EPS = 1e-6
+
+    def __init__(
+        self,
+        capacity: int,
+        obs_dim: int,
+        act_dim: int,
+        horizon: int,
+        episode_length: int,
+        alpha: float = 0.6,
+        beta: float = 0.4,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if episode_length <= horizon:
+            raise ValueError(
+                f"episode_length ({episode_length}) must exceed horizon ({horizon})"
+            )
+        if capacity < episode_length:
+            raise ValueError(
+                f"capacity ({capacity}) is smaller than one episode ({episode_length})"
+            )
+        self.obs_dim = int(obs_dim)
+        self.act_dim = int(act_dim)
+        self.horizon = int(horizon)
+        self.episode_length = int(episode_length)
+        self.alpha = float(alpha)
+        self.beta = float(beta)
+        self.device = torch.device(device)
+        self.max_episodes = int(capacity) // self.episode_length
+        self.capacity = self.max_episodes * self.episode_length
+
+        self._obs = torch.zeros(
+            self.capacity, self.obs_dim, dtype=torch.float32, device=self.device
+        )
+        self._last_obs = torch.zeros(
+            self.max_episodes, self.obs_dim, dtype=torch.float32, device=self.device
+        )
+        self._actions = torch.zeros(
+            self.capacity, self.act_dim, dtype=torch.float32, device=self.device
+        )
+        self._rewards = torch.zeros(self.capacity, dtype=torch.float32, device=self.device)
+        self._tree = SumTree(self.capacity)
+        self._max_priority = 1.0  # raw (pre-alpha) priority given to new transitions
+        self._next_slot = 0
+        self._num_episodes = 0
+        self._steps = torch.arange(self.horizon + 1, device=self.device)
+
+    # ------------------------------------------------------------------ size
+    def __len__(self) -> int:
+        return self._num_episodes * self.episode_length
+
+    @property
+    def num_episodes(self) -> int:
+        """Number of stored episodes."""
+        return self._num_episodes
+
+    @property
+    def is_full(self) -> bool:
+        """Whether every episode slot holds data."""
+        return self._num_episodes == self.max_episodes
+
+    @property
+    def max_priority(self) -> float:
+        """Raw priority assigned to newly inserted transitions."""
+        return self._max_priority
+
+    # ---------------------------------------------------------------- insert
+    def _as_tensor(self, x: ArrayLike, name: str, shape: tuple[int, ...]) -> torch.Tensor:
+        t = torch.as_tensor(x, dtype=torch.float32, device=self.device)
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {shape}")
+        return t
+
+    def add_episode(self, obs: ArrayLike, actions: ArrayLike, rewards: ArrayLike) -> None:
+        """Append one episode, overwriting the oldest one when full.
+
+        Args:
+            obs: s_0..s_L, shape (L+1, obs_dim).
+            actions: a_0..a_{L-1}, shape (L, act_dim).
+            rewards: r_0..r_{L-1}, shape (L,).
+
+        Raises:
+            ValueError: If L <= horizon, L != episode_length or shapes mismatch.
+        """
+        length = int(np.shape(actions)[0]) if np.ndim(actions) > 0 else 0
+        if length <= self.horizon:
+            raise ValueError(f"episode length {length} must exceed horizon {self.horizon}")
+        if length != self.episode_length:
+            raise ValueError(
+                f"episode length {length} != buffer episode_length {self.episode_length}"
+            )
+        L = self.episode_length
+        obs_t = self._as_tensor(obs, "obs", (L + 1, self.obs_dim))
+        act_t = self._as_tensor(actions, "actions", (L, self.act_dim))
+        rew_t = self._as_tensor(rewards, "rewards", (L,))
+
+        slot = self._next_slot
+        start = slot * L
+        self._obs[start : start + L] = obs_t[:L]
+        self._last_obs[slot] = obs_t[L]
+        self._actions[start : start + L] = act_t
+        self._rewards[start : start + L] = rew_t
+
+        prio = np.full(L, self._max_priority**self.alpha, dtype=np.float64)
+        prio[L - self.horizon :] = 0.0
+        self._tree.update(np.arange(start, start + L), prio)
+
+        self._next_slot = (slot + 1) % self.max_episodes
+        self._num_episodes = min(self._num_episodes + 1, self.max_episodes)
+
+    # ---------------------------------------------------------------- sample
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+        """Draw a stratified PER batch of (H+1)-long sequences.
+
+        Args:
+            batch_size: Number of sequences B.
+            rng: Source of all randomness.
+
+        Returns:
+            A :class:`Batch` on the buffer's device.
+        """
+        if self._num_episodes == 0:
+            raise ValueError("cannot sample from an empty buffer")
+        total = self._tree.total
+        segment = total / batch_size
+        u = (np.arange(batch_size) + rng.random(batch_size)) * segment
+        idx = self._tree.find(u)
+
+        probs = self._tree.values(idx) / total
+        weights = (len(self) * probs) ** (-self.beta)
+        weights /= weights.max()
+
+        L = self.episode_length
+        starts = torch.as_tensor(idx, dtype=torch.long, device=self.device)
+        seq = starts.unsqueeze(0) + self._steps.unsqueeze(1)  # (H+1, B): t = 0..H
+        nxt = seq + 1
+        episode = starts // L
+        # Only t = H of a start at step L-H-1 reaches s_L, which lives in _last_obs;
+        # the modulo keeps the (masked-out) index in range for the last slot.
+        at_end = nxt == (episode + 1).unsqueeze(0) * L
+        next_obs = torch.where(
+            at_end.unsqueeze(-1),
+            self._last_obs[episode].unsqueeze(0),
+            self._obs[nxt % self.capacity],
+        )
+        return Batch(
+            obs=self._obs[starts],
+            actions=self._actions[seq],
+            rewards=self._rewards[seq],
+            next_obs=next_obs,
+            weights=torch.as_tensor(weights, dtype=torch.float32, device=self.device),
+            indices=idx,
+        )
+
+    def sample_transitions(
+        self, n: int, rng: np.random.Generator
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Uniformly sample single (s, a) rows from the filled part.
+
+        Args:
+            n: Number of rows.
+            rng: Source of randomness.
+
+        Returns:
+            ``(obs, actions)`` with shapes (n, obs_dim) and (n, act_dim).
+        """
+        if self._num_episodes == 0:
+            raise ValueError("cannot sample from an empty buffer")
+        rows = rng.integers(0, len(self), size=n)
+        idx = torch.as_tensor(rows, dtype=torch.long, device=self.device)
+        return self._obs[idx], self._actions[idx]
+
+    # ------------------------------------------------------------ priorities
+    def update_priorities(self, indices: ArrayLike, priorities: ArrayLike) -> None:
+        """Write back new priorities for sampled starts.
+
+        Stores ``(p + 1e-6) ** alpha`` and raises the insertion priority to
+        the largest ``p + 1e-6`` seen. Indices in an episode's last H steps are
+        ignored so those slots can never become sampleable.
+
+        Args:
+            indices: Start indices from :attr:`Batch.indices`, shape (n,).
+            priorities: Non-negative raw priorities, shape (n,).
+        """
+        if isinstance(indices, torch.Tensor):
+            indices = indices.detach().cpu().numpy()
+        if isinstance(priorities, torch.Tensor):
+            priorities = priorities.detach().to(torch.float64).cpu().numpy()
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        p = np.asarray(priorities, dtype=np.float64).reshape(-1)
+        if idx.shape != p.shape:
+            raise ValueError(f"indices {idx.shape} and priorities {p.shape} differ in shape")
+        if not np.all(np.isfinite(p)) or np.any(p < 0):
+            raise ValueError("priorities must be finite and non-negative")
+        keep = (idx % self.episode_length) < self.episode_length - self.horizon
+        idx, p = idx[keep], p[keep] + self.PRIORITY_EPS
+        if idx.size == 0:
+            return
+        self._tree.update(idx, p**self.alpha)
+        self._max_priority = max(self._max_priority, float(p.max()))
+
+    def priorities(self, indices: ArrayLike) -> np.ndarray:
+        """Return the stored tree values ``p ** alpha`` for ``indices``."""
+        return self._tree.values(np.asarray(indices, dtype=np.int64))
+
+    # ------------------------------------------------------------ checkpoint
+    def state_dict(self) -> dict[str, Any]:
+        """Return a checkpointable copy of the buffer (tensors on CPU)."""
+        return {
+            "config": {
+                "capacity": self.capacity,
+                "obs_dim": self.obs_dim,
+                "act_dim": self.act_dim,
+                "horizon": self.horizon,
+                "episode_length": self.episode_length,
+            },
+            "obs": self._obs.detach().cpu().clone(),
+            "last_obs": self._last_obs.detach().cpu().clone(),
+            "actions": self._actions.detach().cpu().clone(),
+            "rewards": self._rewards.detach().cpu().clone(),
+            "tree": self._tree.state_dict(),
+            "max_priority": self._max_priority,
+            "next_slot": self._next_slot,
+            "num_episodes": self._num_episodes,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a state from :meth:`state_dict` of an identically configured buffer."""
+        cfg = state["config"]
+        mine = {
+            "capacity": self.capacity,
+            "obs_dim": self.obs_dim,
+            "act_dim": self.act_dim,
+            "horizon": self.horizon,
+            "episode_length": self.episode_length,
+        }
+        if {k: int(cfg[k]) for k in mine} != mine:
+            raise ValueError(f"buffer config mismatch: state {dict(cfg)} vs buffer {mine}")
+        self._obs.copy_(state["obs"])
+        self._last_obs.copy_(state["last_obs"])
+        self._actions.copy_(state["actions"])
+        self._rewards.copy_(state["rewards"])
+        self._tree.load_state_dict(state["tree"])
+        self._max_priority = float(state["max_priority"])
+        self._next_slot = int(state["next_slot"])
+        self._num_episodes = int(state["num_episodes"])

@@ -1,0 +1,184 @@
+"""Networks of the TD-MPC agent (spec §2.1): the shared world model and the task-specific heads.
+
+The world model and the heads are separate modules on purpose. A continual method carries the
+:class:`WorldModel` from task to task and builds fresh :class:`TaskHeads` for every task; DRAGO's
+learner and reviewer are two ``TaskHeads`` over one ``WorldModel``.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# The dynamics output is clamped before squashing, as in the official code.
+DYNAMICS_CLAMP = 100.0
+
+
+class CReLU(nn.Module):
+    """concat(ReLU(x), ReLU(-x)): keeps both signs alive, which doubles the width."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat((F.relu(x), F.relu(-x)), dim=-1)
+
+
+def _init_linear(layer: nn.Linear, zero: bool = False) -> None:
+    if zero:
+        nn.init.zeros_(layer.weight)
+    else:
+        nn.init.orthogonal_(layer.weight, gain=1.0)
+    nn.init.zeros_(layer.bias)
+
+
+def mlp(in_dim: int, hidden: int, out_dim: int, act: str = "elu", zero_last: bool = False) -> nn.Sequential:
+    """Linear - act - Linear - act - Linear with orthogonal weights and zero biases.
+
+    Args:
+        act: ``elu`` or ``crelu`` (CReLU doubles the width seen by the following layer).
+        zero_last: zero the last layer, so reward and value heads start at exactly 0.
+    """
+    width = 2 * hidden if act == "crelu" else hidden
+    make_act = CReLU if act == "crelu" else nn.ELU
+    layers = [nn.Linear(in_dim, hidden), make_act(), nn.Linear(width, hidden), make_act(), nn.Linear(width, out_dim)]
+    for i, layer in enumerate(layers):
+        if isinstance(layer, nn.Linear):
+            _init_linear(layer, zero=zero_last and i == len(layers) - 1)
+    return nn.Sequential(*layers)
+
+
+class WorldModel(nn.Module):
+    """Identity encoder plus dynamics MLP predicting the next (raw) observation.
+
+    With ``use_encoder=false`` (every experiment of the paper) the latent is the observation itself,
+    so the world model is the dynamics network alone. It keeps an EMA target copy, updated with the
+    heads' targets, so checkpoints carry the same state as the official code's.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, mlp_dim: int, use_crelu: bool, squash: bool):
+        super().__init__()
+        self.obs_dim = obs_dim
+        self.action_dim = action_dim
+        self.squash = squash
+        self.dynamics = mlp(obs_dim + action_dim, mlp_dim, obs_dim, act="crelu" if use_crelu else "elu")
+        self.target = copy.deepcopy(self.dynamics).requires_grad_(False)
+
+    def encode(self, obs: torch.Tensor) -> torch.Tensor:
+        """The latent of an observation (identity: the paper never enables the encoder)."""
+        return obs
+
+    def raw_next(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Pre-clamp, pre-squash output: what synthetic rehearsal distils (spec §3.3)."""
+        return self.dynamics(torch.cat((z, action), dim=-1))
+
+    def squash_output(self, raw: torch.Tensor) -> torch.Tensor:
+        out = raw.clamp(-DYNAMICS_CLAMP, DYNAMICS_CLAMP)
+        return torch.tanh(out) if self.squash else out
+
+    def forward(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Predicted next latent, exactly as the planner sees it."""
+        return self.squash_output(self.raw_next(z, action))
+
+    @torch.no_grad()
+    def ema_update(self, tau: float) -> None:
+        for p, p_target in zip(self.dynamics.parameters(), self.target.parameters()):
+            p_target.lerp_(p, tau)
+
+
+class EnsembleLinear(nn.Module):
+    """``n`` independent linear layers evaluated as one batched matmul."""
+
+    def __init__(self, n: int, in_dim: int, out_dim: int, zero: bool = False):
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(n, in_dim, out_dim))
+        self.bias = nn.Parameter(torch.zeros(n, 1, out_dim))
+        for i in range(n):
+            if zero:
+                nn.init.zeros_(self.weight.data[i])
+            else:
+                # Orthogonal init of the (out, in) matrix, as for nn.Linear, stored transposed.
+                w = torch.empty(out_dim, in_dim)
+                nn.init.orthogonal_(w, gain=1.0)
+                self.weight.data[i] = w.t()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        # x: (n, rows, in) or (rows, in) broadcast to every member.
+        if x.dim() == 2:
+            return torch.baddbmm(self.bias, x.unsqueeze(0).expand(self.weight.shape[0], -1, -1), self.weight)
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class TwinQ(nn.Module):
+    """Two critics Linear - LayerNorm - Tanh - Linear - ELU - Linear, batched as one ensemble."""
+
+    def __init__(self, in_dim: int, mlp_dim: int):
+        super().__init__()
+        self.l1 = EnsembleLinear(2, in_dim, mlp_dim)
+        self.ln_weight = nn.Parameter(torch.ones(2, 1, mlp_dim))
+        self.ln_bias = nn.Parameter(torch.zeros(2, 1, mlp_dim))
+        self.l2 = EnsembleLinear(2, mlp_dim, mlp_dim)
+        self.l3 = EnsembleLinear(2, mlp_dim, 1, zero=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Returns (2, rows) values for inputs of shape (rows, in_dim)."""
+        h = self.l1(x)
+        h = F.layer_norm(h, h.shape[-1:]) * self.ln_weight + self.ln_bias
+        h = F.elu(self.l2(torch.tanh(h)))
+        return self.l3(h).squeeze(-1)
+
+
+class TaskHeads(nn.Module):
+    """Reward, policy and twin Q of one agent for one task, plus the EMA target of Q.
+
+    Inputs to the reward head and the critics are detached from the world model, so only the
+    consistency loss and rehearsal can change the dynamics (spec §2.3, gradient isolation).
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, mlp_dim: int, discrete: bool):
+        super().__init__()
+        self.discrete = discrete
+        self.action_dim = action_dim
+        self.reward = mlp(obs_dim + action_dim, mlp_dim, 1, zero_last=True)
+        self.policy = mlp(obs_dim, mlp_dim, action_dim)
+        self.q = TwinQ(obs_dim + action_dim, mlp_dim)
+        self.q_target = copy.deepcopy(self.q).requires_grad_(False)
+
+    def predict_reward(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.reward(torch.cat((z.detach(), action), dim=-1)).squeeze(-1)
+
+    def q_values(self, z: torch.Tensor, action: torch.Tensor, target: bool = False) -> torch.Tensor:
+        """(2, rows) twin-critic values; z is detached so critics never train the world model."""
+        net = self.q_target if target else self.q
+        return net(torch.cat((z.detach(), action), dim=-1))
+
+    def act(self, z: torch.Tensor, std: float, deterministic: bool = False) -> torch.Tensor:
+        """Policy action (spec §2.2): hard Gumbel one-hot for the grid, clipped Gaussian around tanh(mu)."""
+        out = self.policy(z)
+        if self.discrete:
+            if deterministic:
+                return F.one_hot(out.argmax(-1), self.action_dim).to(out.dtype)
+            return F.gumbel_softmax(out, tau=1.0, hard=True)
+        mu = torch.tanh(out)
+        if deterministic or std <= 0:
+            return mu
+        noise = (std * torch.randn_like(mu)).clamp(-0.3, 0.3)
+        sample = mu + noise
+        clamped = sample.clamp(-1 + 1e-6, 1 - 1e-6)
+        # Straight-through: clamp in the forward pass, identity gradient.
+        return sample + (clamped - sample).detach()
+
+    @torch.no_grad()
+    def ema_update(self, tau: float) -> None:
+        for p, p_target in zip(self.q.parameters(), self.q_target.parameters()):
+            p_target.lerp_(p, tau)
+
+
+def linear_schedule(start: float, end: float, duration: int, step: int) -> float:
+    """Linear interpolation from ``start`` to ``end`` over ``duration`` steps, then constant."""
+    mix = min(max(step / duration, 0.0), 1.0)
+    return start + mix * (end - start)
+
+
+def parameter_count(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)

@@ -1,0 +1,116 @@
+"""The ``drago`` command: parses, validates, calls the library. No logic of its own.
+
+Every user error ends as one line ``drago: error: ...`` on stderr with exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """Raised instead of printing argparse's multi-line usage block."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # noqa: D102 (argparse hook)
+        raise UsageError(message)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="drago", description="Continual model-based RL: DRAGO and its baselines.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    train = sub.add_parser("train", help="run a continual task sequence")
+    train.add_argument("preset", help="preset name (see `drago list`)")
+    train.add_argument("--method", default=None, help="continual method (default: the preset's, continual)")
+    train.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, 1)")
+    train.add_argument("--out", type=Path, default=None, help="run directory (default runs/PRESET/METHOD/seedS)")
+    train.add_argument("--force", action="store_true", help="overwrite an existing run directory")
+    train.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+    train.add_argument("overrides", nargs="*", metavar="key=value", help="settings, e.g. agent.mlp_dim=256")
+
+    resume = sub.add_parser("resume", help="continue a run that was interrupted")
+    resume.add_argument("run_dir", type=Path)
+    resume.add_argument("--no-progress", action="store_true")
+
+    listing = sub.add_parser("list", help="presets, tasks and methods (and settings with --settings)")
+    listing.add_argument("--settings", action="store_true", help="also list every setting with its default")
+    return parser
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from drago.config import load_config
+    from drago.train.run import default_run_dir, new_run
+
+    if args.seed is not None and args.seed < 0:
+        raise UsageError(f"--seed must be a non-negative integer, got {args.seed}")
+    cfg = load_config(args.preset, args.overrides, method=args.method, seed=args.seed)
+    run_dir = args.out or default_run_dir(cfg)
+    trainer = new_run(cfg, run_dir, force=args.force, progress=not args.no_progress)
+    trainer.logger.print(f"drago train {cfg.preset} --method {cfg.method.name} --seed {cfg.train.seed} -> {run_dir}")
+    trainer.run()
+    return 0
+
+
+def _cmd_resume(args: argparse.Namespace) -> int:
+    from drago.train.run import resume
+
+    trainer = resume(args.run_dir, progress=not args.no_progress)
+    done = trainer.completed_tasks()
+    if done == len(trainer.cfg.env.tasks):
+        trainer.logger.print(f"{args.run_dir} is already complete ({done} tasks); nothing to do")
+        trainer.write_summary()
+        return 0
+    trainer.logger.print(f"resuming {args.run_dir}: {done} of {len(trainer.cfg.env.tasks)} tasks complete")
+    trainer.run()
+    return 0
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    from drago.config import available_presets, describe_settings
+    from drago.continual import METHODS
+    from drago.envs import GRID_SEQUENCES, GRID_TASKS
+
+    print("presets:  " + ", ".join(available_presets()))
+    print("methods:")
+    for name, cls in METHODS.items():
+        print(f"  {name:<20} {cls.description}")
+    print("tasks (minigrid):")
+    for name, task in GRID_TASKS.items():
+        reward = "dense" if task.dense else "sparse"
+        print(f"  {name:<20} {task.start} -> {task.goal}, {reward}: {task.description}")
+    print("sequences:  " + "; ".join(f"{k}: {' -> '.join(v)}" for k, v in GRID_SEQUENCES.items()))
+    if args.settings:
+        print("settings (key, type, default):")
+        for key, kind, default in describe_settings():
+            print(f"  {key:<34} {kind:<18} {default}")
+    return 0
+
+
+COMMANDS = {"train": _cmd_train, "resume": _cmd_resume, "list": _cmd_list}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from drago.config import ConfigError
+    from drago.train.checkpoint import CheckpointError
+    from drago.train.run import RunDirError
+
+    try:
+        args = _parser().parse_args(argv)
+        return COMMANDS[args.command](args)
+    except (UsageError, ConfigError, CheckpointError, RunDirError) as err:
+        print(f"drago: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("drago: interrupted; continue with `drago resume RUN_DIR`", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

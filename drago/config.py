@@ -1,0 +1,360 @@
+"""Typed settings, named presets and ``key=value`` overrides.
+
+Every setting is a documented dataclass field. A preset is a YAML file in ``drago/presets`` that
+lists only what differs from the defaults below (optionally on top of another preset via ``base``).
+Validation happens once, in :func:`load_config`; every error is a :class:`ConfigError` whose message
+is one line naming the bad key or value and the valid choices.
+
+The defaults are the paper's MiniGrid values (spec §2.6) with the official code's behaviour wherever
+paper and code disagree (spec §3.12); each such switch says so in its field comment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A bad preset, key or value; the message is one line meant for the user."""
+
+
+@dataclass
+class EnvConfig:
+    """Which world and which sequence of tasks."""
+
+    domain: str = "minigrid"  # minigrid (cheetah / walker come with the DMC issue)
+    tasks: tuple[str, ...] = ("room1", "room2", "room3", "room4")  # the continual sequence, in order
+    dense_reward: bool | None = None  # None: each task's own default (training dense, test tasks sparse)
+    episode_length: int = 100  # agent steps per episode
+    action_repeat: int = 1
+
+
+@dataclass
+class AgentConfig:
+    """The TD-MPC agent as modified in DRAGO (spec §2)."""
+
+    mlp_dim: int = 512
+    use_crelu: bool = True  # CReLU dynamics as at the code's HEAD; the paper-era run used ELU (false)
+    horizon: int = 10  # training and maximum planning horizon H
+    discount: float = 0.99
+    batch_size: int = 512
+    lr: float = 1e-3
+    rho: float = 0.5  # temporal weight of the t-th loss term
+    consistency_coef: float = 2.0
+    reward_coef: float = 0.5
+    value_coef: float = 0.1
+    grad_clip_norm: float = 10.0
+    tau: float = 0.01  # target EMA coefficient (the paper's table calls it "temperature")
+    update_freq: int = 40  # target EMA every this many gradient steps
+    first_step_qr_only: bool = False  # true: reward and value losses at t=0 only (code: DMC true, grid false)
+    per_alpha: float = 0.6
+    per_beta: float = 0.4
+    # Planning (spec §2.5).
+    iterations: int = 6
+    num_samples: int = 512
+    num_elites: int = 64
+    mixture_coef: float = 0.05  # fraction of policy trajectories added to the sampled ones
+    temperature: float = 0.5
+    momentum: float = 0.1
+    min_std: float = 0.05
+    max_std: float = 2.0
+    use_q: bool = True  # terminal Q value in the planner's return
+    elite_selection: str = "sample"  # code: sample an elite in proportion to its weight; paper: argmax
+    horizon_schedule_steps: int = 10_000  # planning horizon grows linearly 1 -> H over these task steps
+    std_schedule_start: float = 0.5  # CEM std floor, linear start -> min_std over std_schedule_steps
+    std_schedule_steps: int = 50_000
+    seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
+    random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)  # grid seed-phase (left, right, forward)
+
+
+@dataclass
+class TrainConfig:
+    """Budgets, evaluation, checkpoints and the machine."""
+
+    steps_per_task: int = 300_000  # agent steps per task, learner and reviewer together (code's count)
+    updates_per_episode: int | None = None  # gradient steps after each iteration; None: episode_length
+    eval_freq: int = 10_000  # evaluate every this many env steps of a task (and at its start and end)
+    eval_episodes: int = 10
+    checkpoint_freq: int = 50_000  # periodic resumable checkpoint every this many env steps
+    seed: int = 1
+    device: str = "cpu"  # cpu, cuda, cuda:N
+    threads: int = 0  # torch intra-op threads; 0: all cores
+    tensorboard: bool = True
+
+
+@dataclass
+class MethodConfig:
+    """The continual-learning method and its own settings."""
+
+    name: str = "continual"
+
+
+@dataclass
+class Config:
+    """Everything one run needs; `preset` records where the values came from."""
+
+    preset: str = "minigrid"
+    env: EnvConfig = field(default_factory=EnvConfig)
+    agent: AgentConfig = field(default_factory=AgentConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    method: MethodConfig = field(default_factory=MethodConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return _to_plain(dataclasses.asdict(self))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Config:
+        """Rebuild a config written by :meth:`to_dict` (for example a run's ``config.yaml``)."""
+        cfg = cls()
+        _merge(cfg, data, prefix="")
+        validate(cfg)
+        return cfg
+
+    @property
+    def updates_per_episode(self) -> int:
+        return self.train.updates_per_episode or self.env.episode_length
+
+
+SECTIONS = ("env", "agent", "train", "method")
+DOMAINS = ("minigrid",)
+ELITE_SELECTIONS = ("sample", "argmax")
+
+
+def available_presets() -> list[str]:
+    """Names of the YAML presets shipped with the package."""
+    root = resources.files("drago") / "presets"
+    return sorted(p.name[: -len(".yaml")] for p in root.iterdir() if p.name.endswith(".yaml"))
+
+
+def _read_preset(name: str) -> dict[str, Any]:
+    presets = available_presets()
+    if name not in presets:
+        raise ConfigError(f"unknown preset '{name}'; valid presets: {', '.join(presets)}")
+    text = (resources.files("drago") / "presets" / f"{name}.yaml").read_text()
+    data = yaml.safe_load(text) or {}
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    merged = _read_preset(base)
+    for section, values in data.items():
+        if isinstance(values, dict):
+            merged.setdefault(section, {}).update(values)
+        else:
+            merged[section] = values
+    return merged
+
+
+def load_config(preset: str, overrides: list[str] | None = None, method: str | None = None,
+                seed: int | None = None) -> Config:
+    """Build a validated config from a preset name plus ``key=value`` overrides.
+
+    Args:
+        preset: name of a file in ``drago/presets`` (see :func:`available_presets`).
+        overrides: strings ``section.key=value`` or ``key=value`` for a key name that is unique
+            across sections (``mlp_dim=128``).
+        method: shortcut for ``method.name=...``.
+        seed: shortcut for ``train.seed=...``.
+
+    Raises:
+        ConfigError: one line naming the bad preset, key or value.
+    """
+    cfg = Config(preset=preset)
+    data = _read_preset(preset)
+    _merge(cfg, data, prefix=f"preset {preset}: ")
+    for item in overrides or []:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"override '{item}' is not of the form key=value")
+        apply_override(cfg, key.strip(), raw.strip())
+    if method is not None:
+        cfg.method.name = method
+    if seed is not None:
+        cfg.train.seed = seed
+    validate(cfg)
+    return cfg
+
+
+def _all_keys(cfg: Config) -> dict[str, list[str]]:
+    """Map each leaf key name to the sections that define it."""
+    index: dict[str, list[str]] = {}
+    for section in SECTIONS:
+        for f in fields(getattr(cfg, section)):
+            index.setdefault(f.name, []).append(section)
+    return index
+
+
+def apply_override(cfg: Config, key: str, raw: str) -> None:
+    """Set one setting from its string form, converting to the field's declared type."""
+    if "." in key:
+        section, _, name = key.partition(".")
+        if section not in SECTIONS:
+            raise ConfigError(f"unknown section '{section}' in '{key}'; valid sections: {', '.join(SECTIONS)}")
+    else:
+        owners = _all_keys(cfg).get(key)
+        if not owners:
+            raise ConfigError(f"unknown setting '{key}'; run `drago list --settings` for the valid keys")
+        if len(owners) > 1:
+            raise ConfigError(f"setting '{key}' is ambiguous; write one of: "
+                              + ", ".join(f"{s}.{key}" for s in owners))
+        section, name = owners[0], key
+    target = getattr(cfg, section)
+    declared = {f.name: f for f in fields(target)}
+    if name not in declared:
+        raise ConfigError(f"unknown setting '{section}.{name}'; valid keys in {section}: "
+                          + ", ".join(declared))
+    value = _parse(raw, declared[name].type, f"{section}.{name}")
+    setattr(target, name, value)
+
+
+def _merge(cfg: Config, data: dict[str, Any], prefix: str) -> None:
+    for section, values in data.items():
+        if section == "preset":
+            cfg.preset = str(values)
+            continue
+        if section not in SECTIONS:
+            raise ConfigError(f"{prefix}unknown section '{section}'; valid sections: {', '.join(SECTIONS)}")
+        if not isinstance(values, dict):
+            raise ConfigError(f"{prefix}section '{section}' must be a mapping of settings")
+        target = getattr(cfg, section)
+        declared = {f.name: f for f in fields(target)}
+        for name, value in values.items():
+            if name not in declared:
+                raise ConfigError(f"{prefix}unknown setting '{section}.{name}'; valid keys in {section}: "
+                                  + ", ".join(declared))
+            setattr(target, name, _coerce(value, declared[name].type, f"{section}.{name}"))
+
+
+def _resolve_type(annotation: Any) -> Any:
+    if isinstance(annotation, str):
+        return eval(annotation, {**vars(typing), **vars(types), "tuple": tuple})  # noqa: S307 (our own annotations)
+    return annotation
+
+
+def _parse(raw: str, annotation: Any, key: str) -> Any:
+    """Parse a command-line string with YAML rules, then check it against the declared type."""
+    try:
+        value = yaml.safe_load(raw) if raw != "" else ""
+    except yaml.YAMLError:
+        value = raw
+    return _coerce(value, annotation, key)
+
+
+def _coerce(value: Any, annotation: Any, key: str) -> Any:
+    kind = _resolve_type(annotation)
+    origin = typing.get_origin(kind)
+    args = typing.get_args(kind)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        if isinstance(value, str) and value.lower() in ("none", "null") and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(value, inner[0], key)
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [v.strip() for v in value.strip("()[]").split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"setting '{key}' expects a list, got {value!r}")
+        return tuple(_coerce(v, args[0], key) for v in value)
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"setting '{key}' expects true or false, got {value!r}")
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
+            raise ConfigError(f"setting '{key}' expects an integer, got {value!r}")
+        return int(value)
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"setting '{key}' expects a number, got {value!r}")
+        return float(value)
+    if kind is str:
+        if isinstance(value, (dict, list)):
+            raise ConfigError(f"setting '{key}' expects a string, got {value!r}")
+        return str(value)
+    return value
+
+
+def validate(cfg: Config) -> None:
+    """Check ranges and names once, so nothing fails an hour into a run."""
+    from drago.continual import available_methods
+    from drago.envs import available_tasks
+
+    methods = available_methods()
+    if cfg.method.name not in methods:
+        raise ConfigError(f"unknown method '{cfg.method.name}'; valid methods: {', '.join(methods)}")
+    if cfg.env.domain not in DOMAINS:
+        raise ConfigError(f"unknown domain '{cfg.env.domain}'; valid domains: {', '.join(DOMAINS)}")
+    if not cfg.env.tasks:
+        raise ConfigError("env.tasks is empty; name at least one task")
+    valid_tasks = available_tasks(cfg.env.domain)
+    for task in cfg.env.tasks:
+        if task not in valid_tasks:
+            raise ConfigError(f"unknown task '{task}' for domain {cfg.env.domain}; valid tasks: "
+                              + ", ".join(valid_tasks))
+    positive = {
+        "env.episode_length": cfg.env.episode_length, "env.action_repeat": cfg.env.action_repeat,
+        "agent.mlp_dim": cfg.agent.mlp_dim, "agent.horizon": cfg.agent.horizon,
+        "agent.batch_size": cfg.agent.batch_size, "agent.iterations": cfg.agent.iterations,
+        "agent.num_samples": cfg.agent.num_samples, "agent.num_elites": cfg.agent.num_elites,
+        "agent.update_freq": cfg.agent.update_freq, "agent.horizon_schedule_steps": cfg.agent.horizon_schedule_steps,
+        "agent.std_schedule_steps": cfg.agent.std_schedule_steps,
+        "train.steps_per_task": cfg.train.steps_per_task, "train.eval_freq": cfg.train.eval_freq,
+        "train.eval_episodes": cfg.train.eval_episodes, "train.checkpoint_freq": cfg.train.checkpoint_freq,
+        "agent.lr": cfg.agent.lr,
+    }
+    for key, value in positive.items():
+        if value <= 0:
+            raise ConfigError(f"setting '{key}' must be positive, got {value}")
+    if cfg.train.updates_per_episode is not None and cfg.train.updates_per_episode < 0:
+        raise ConfigError(f"setting 'train.updates_per_episode' must be >= 0, got {cfg.train.updates_per_episode}")
+    if cfg.train.threads < 0:
+        raise ConfigError(f"setting 'train.threads' must be >= 0, got {cfg.train.threads}")
+    for key in ("seed_steps",):
+        if getattr(cfg.agent, key) < 0:
+            raise ConfigError(f"setting 'agent.{key}' must be >= 0, got {getattr(cfg.agent, key)}")
+    if cfg.agent.num_elites > cfg.agent.num_samples:
+        raise ConfigError(f"agent.num_elites ({cfg.agent.num_elites}) must not exceed agent.num_samples "
+                          f"({cfg.agent.num_samples})")
+    if cfg.env.episode_length <= cfg.agent.horizon:
+        raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must exceed agent.horizon "
+                          f"({cfg.agent.horizon}) so that training sequences fit inside an episode")
+    for key in ("discount", "rho", "tau", "momentum", "mixture_coef"):
+        value = getattr(cfg.agent, key)
+        if not 0.0 <= value <= 1.0:
+            raise ConfigError(f"setting 'agent.{key}' must lie in [0, 1], got {value}")
+    if cfg.agent.elite_selection not in ELITE_SELECTIONS:
+        raise ConfigError(f"unknown agent.elite_selection '{cfg.agent.elite_selection}'; valid choices: "
+                          + ", ".join(ELITE_SELECTIONS))
+    probs = cfg.agent.random_action_probs
+    if len(probs) != 3 or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
+        raise ConfigError(f"agent.random_action_probs must be three non-negative numbers summing to 1, got {probs}")
+    device = cfg.train.device
+    if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
+        raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")
+
+
+def _to_plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _to_plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_to_plain(v) for v in value]
+    return value
+
+
+def describe_settings() -> list[tuple[str, str, Any]]:
+    """(key, type, default) for every setting, for `drago list --settings`."""
+    cfg = Config()
+    rows = []
+    for section in SECTIONS:
+        for f in fields(getattr(cfg, section)):
+            type_name = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+            rows.append((f"{section}.{f.name}", str(type_name), getattr(getattr(cfg, section), f.name)))
+    return rows

@@ -1,0 +1,24 @@
+"""Continual-learning methods, by name."""
+
+from __future__ import annotations
+
+from drago.continual.base import ContinualMethod, TaskState
+from drago.continual.naive import Continual, Scratch
+
+METHODS: dict[str, type[ContinualMethod]] = {
+    "continual": Continual,
+    "scratch": Scratch,
+}
+
+
+def available_methods() -> list[str]:
+    return list(METHODS)
+
+
+def get_method(name: str) -> type[ContinualMethod]:
+    if name not in METHODS:
+        raise ValueError(f"unknown method '{name}'; valid methods: {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+__all__ = ["METHODS", "ContinualMethod", "TaskState", "available_methods", "get_method"]

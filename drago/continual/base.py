@@ -1,0 +1,90 @@
+"""The continual-method interface: a small strategy object with named hooks.
+
+The trainer owns the loop (collect, update, evaluate, checkpoint) and calls these hooks; a method
+changes only what differs. Adding a method is one file plus one line in ``drago/continual/__init__.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from drago.agent.agent import Agent
+from drago.agent.buffer import EpisodeReplay
+from drago.agent.networks import WorldModel
+from drago.config import Config
+from drago.envs import EnvSpec
+
+
+@dataclass
+class TaskState:
+    """Everything that lives for one task of the sequence (spec §3.10: fresh at every task).
+
+    The world model is the exception: the method decides whether it arrives fresh or carried over.
+    """
+
+    index: int
+    name: str
+    world_model: WorldModel
+    world_optimizer: torch.optim.Optimizer
+    learner: Agent
+    buffer: EpisodeReplay
+    rng: np.random.Generator
+    step: int = 0  # task-local agent steps, learner and reviewer together (the official code's count)
+    learner_steps: int = 0
+    episodes: int = 0
+    extras: dict[str, Any] = field(default_factory=dict)  # a method's per-task objects
+
+
+class ContinualMethod:
+    """Naive continual TD-MPC: the world model is carried over and fine-tuned on each new task.
+
+    Subclasses override hooks; every default here is the plain TD-MPC behaviour.
+    """
+
+    name = "continual"
+    description = "continual TD-MPC: carry the world model over and fine-tune it on each task"
+    #: Build a fresh world model at every task instead of carrying the previous one over.
+    fresh_world_model = False
+
+    def __init__(self, cfg: Config, spec: EnvSpec, device: torch.device):
+        self.cfg = cfg
+        self.spec = spec
+        self.device = device
+
+    # ---- task boundaries -------------------------------------------------------------------
+    def begin_task(self, task: TaskState) -> None:
+        """Called once the task's world model, learner and buffer exist, before any step."""
+
+    def end_task(self, task: TaskState) -> None:
+        """Called after the task's last update and final evaluation, before its checkpoint."""
+
+    # ---- inside an iteration ---------------------------------------------------------------
+    def collect(self, task: TaskState, make_env) -> dict[str, float]:
+        """Extra data collection after each learner episode (DRAGO's reviewer); returns log values."""
+        return {}
+
+    def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
+        """One gradient iteration u: by default a learner update that also trains the world model."""
+        batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)
+        metrics = task.learner.update(batch, u, train_world_model=True)
+        task.buffer.update_priorities(batch.indices, metrics.pop("priority"))
+        return {f"learner_{k}": v for k, v in metrics.items()}
+
+    # ---- persistence -----------------------------------------------------------------------
+    def carry_state(self) -> dict[str, Any]:
+        """What the next task inherits besides the world model (VAE, threshold, Fisher, ...)."""
+        return {}
+
+    def load_carry_state(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`carry_state` from the previous task's checkpoint."""
+
+    def task_state_dict(self, task: TaskState) -> dict[str, Any]:
+        """Mid-task state beyond the learner and its buffer, for a resumable checkpoint."""
+        return {}
+
+    def load_task_state_dict(self, task: TaskState, state: dict[str, Any]) -> None:
+        """Restore :meth:`task_state_dict` when resuming in the middle of a task."""

@@ -1,0 +1,303 @@
+"""The continual trainer: one task after another, the world model carried between them (spec §3.9-3.10).
+
+Per iteration: one learner episode, the method's extra collection (DRAGO's reviewer), then
+``updates_per_episode`` gradient iterations once past the seed phase; evaluation and periodic
+checkpoints when their env-step period is crossed. A task ends with a final evaluation and a task
+checkpoint, which is also how the next task receives the world model: a resumed run and an
+uninterrupted one take exactly the same path.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from drago.agent.agent import Agent
+from drago.agent.buffer import EpisodeReplay
+from drago.agent.networks import WorldModel
+from drago.config import Config
+from drago.continual.base import ContinualMethod, TaskState
+from drago.envs import EnvSpec, make_env, task_optimum
+from drago.train.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from drago.train.logger import RunLogger
+
+MAX_BUFFER = 1_000_000
+
+
+@dataclass
+class Episode:
+    obs: np.ndarray  # (L+1, obs_dim)
+    actions: np.ndarray  # (L, act_dim)
+    rewards: np.ndarray  # (L,)
+
+    @property
+    def ret(self) -> float:
+        return float(self.rewards.sum())
+
+
+def run_episode(env, length: int, choose_action) -> Episode:
+    """Roll one fixed-length episode; ``choose_action(obs, t)`` returns the action to take."""
+    obs, _ = env.reset()
+    observations, actions, rewards = [obs], [], []
+    for t in range(length):
+        action = choose_action(obs, t)
+        obs, reward, _, _, _ = env.step(action)
+        observations.append(obs)
+        actions.append(action)
+        rewards.append(reward)
+    return Episode(np.asarray(observations, dtype=np.float32), np.asarray(actions, dtype=np.float32),
+                   np.asarray(rewards, dtype=np.float32))
+
+
+def build_world_model(cfg: Config, spec: EnvSpec, device: torch.device) -> WorldModel:
+    # The grid's observations lie in [-1, 1]: its dynamics end in tanh (spec §2.1).
+    return WorldModel(spec.obs_dim, spec.action_dim, cfg.agent.mlp_dim, cfg.agent.use_crelu,
+                      squash=spec.discrete).to(device)
+
+
+def task_seed(seed: int, task_index: int, *purpose: int) -> int:
+    """Independent, reproducible seeds per (run seed, task, purpose): a resumed task replays exactly."""
+    return int(np.random.SeedSequence([seed, task_index, *purpose]).generate_state(1)[0])
+
+
+class Trainer:
+    """Runs the configured task sequence into ``run_dir`` (see :mod:`drago.train.run` to build one)."""
+
+    def __init__(self, cfg: Config, run_dir: Path, method: ContinualMethod, spec: EnvSpec, logger: RunLogger,
+                 device: torch.device, progress: bool = True):
+        self.cfg = cfg
+        self.run_dir = run_dir
+        self.method = method
+        self.spec = spec
+        self.logger = logger
+        self.device = device
+        self.progress = progress
+        self.ckpt_dir = run_dir / "checkpoints"
+
+    # ---- paths and bookkeeping -------------------------------------------------------------
+    def task_checkpoint(self, index: int) -> Path:
+        return self.ckpt_dir / f"task{index + 1}_{self.cfg.env.tasks[index]}.pt"
+
+    @property
+    def resume_checkpoint(self) -> Path:
+        return self.ckpt_dir / "resume.pt"
+
+    def completed_tasks(self) -> int:
+        done = 0
+        while done < len(self.cfg.env.tasks) and self.task_checkpoint(done).exists():
+            done += 1
+        return done
+
+    def env_steps(self, agent_steps: int) -> int:
+        return agent_steps * self.cfg.env.action_repeat
+
+    # ---- the sequence ----------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        """Train every task not yet finished, resuming a task in progress; returns the summary."""
+        cfg = self.cfg
+        start = self.completed_tasks()
+        budget = cfg.train.steps_per_task * len(cfg.env.tasks)
+        bar = tqdm(total=budget, initial=start * cfg.train.steps_per_task, unit="step", dynamic_ncols=True,
+                   disable=not self.progress, desc="drago")
+        try:
+            for index in range(start, len(cfg.env.tasks)):
+                self.train_task(index, bar)
+        finally:
+            bar.close()
+        summary = self.write_summary()
+        self.logger.print(f"done: {self.run_dir} ({summary['wall_time_s']:.0f} s)")
+        return summary
+
+    def train_task(self, index: int, bar: tqdm) -> None:
+        cfg, spec, device = self.cfg, self.spec, self.device
+        name = cfg.env.tasks[index]
+        torch.manual_seed(task_seed(cfg.train.seed, index, 0))
+        rng = np.random.default_rng(task_seed(cfg.train.seed, index, 1))
+        env = make_env(cfg.env.domain, name, cfg.env.dense_reward)
+        env.reset(seed=task_seed(cfg.train.seed, index, 2))
+
+        world_model = build_world_model(cfg, spec, device)
+        if index > 0:
+            previous = load_checkpoint(self.task_checkpoint(index - 1), kind="task", domain=cfg.env.domain,
+                                       map_location=device)
+            if not self.method.fresh_world_model:
+                world_model.load_state_dict(previous["world_model"])
+            self.method.load_carry_state(previous["method"])
+        world_optimizer = torch.optim.Adam(world_model.dynamics.parameters(), lr=cfg.agent.lr)
+        learner = Agent(world_model, world_optimizer, cfg.agent, spec.discrete)
+        capacity = max(min(cfg.train.steps_per_task, MAX_BUFFER), cfg.env.episode_length)
+        buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, cfg.agent.horizon, cfg.env.episode_length,
+                               cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
+        task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,
+                         learner=learner, buffer=buffer, rng=rng)
+        self.method.begin_task(task)
+
+        elapsed = 0.0
+        last_eval_env = last_ckpt_env = 0
+        last_eval: dict[str, float] = {}
+        resumed = self._try_resume(task, env)
+        if resumed is not None:
+            elapsed, last_eval_env, last_ckpt_env, last_eval = resumed
+            bar.update(task.step)
+            self.logger.print(f"[{name}] resumed at step {task.step} from {self.resume_checkpoint.name}")
+        else:
+            if index == 0:
+                self.logger.restore({k: 0 for k in self.logger.positions()})
+            else:
+                self.logger.restore(previous["log_positions"])
+            last_eval = self.evaluate(task)
+        started = time.perf_counter() - elapsed
+
+        budget = cfg.train.steps_per_task
+        seed_steps = cfg.agent.seed_steps
+        L = cfg.env.episode_length
+        while task.step < budget:
+            t0 = time.perf_counter()
+            step = task.step
+            explore_randomly = step < seed_steps or len(buffer) < cfg.agent.batch_size
+
+            def choose(obs, t, step=step, explore_randomly=explore_randomly):
+                if explore_randomly:
+                    return learner.random_action(rng)
+                return learner.act(obs, step, eval_mode=False, first_step=t == 0)
+
+            episode = run_episode(env, L, choose)
+            buffer.add_episode(episode.obs, episode.actions, episode.rewards)
+            task.step += L
+            task.learner_steps += L
+            task.episodes += 1
+            row: dict[str, Any] = {"task": name, "task_index": index, "episode": task.episodes, "step": task.step,
+                                   "learner_step": task.learner_steps, "env_step": self.env_steps(task.step),
+                                   "episode_reward": episode.ret}
+            row.update(self.method.collect(task, make_env))
+            t1 = time.perf_counter()
+
+            metrics: dict[str, torch.Tensor] = {}
+            if step >= seed_steps:
+                for i in range(cfg.updates_per_episode):
+                    metrics = self.method.gradient_step(task, step + i)
+            # Only the last gradient step is logged, as in the official code: one host sync per iteration.
+            row.update({k: float(v) for k, v in metrics.items()})
+            t2 = time.perf_counter()
+
+            env_step = self.env_steps(task.step)
+            global_step = self.env_steps(index * budget + task.step)
+            self.logger.log("train", row, global_step)
+            if env_step // cfg.train.eval_freq > last_eval_env // cfg.train.eval_freq or task.step >= budget:
+                last_eval = self.evaluate(task)
+                last_eval_env = env_step
+            t3 = time.perf_counter()
+            self.logger.log("timing", {"task": name, "episode": task.episodes, "env_step": env_step,
+                                       "collect_s": round(t1 - t0, 4), "update_s": round(t2 - t1, 4),
+                                       "eval_s": round(t3 - t2, 4),
+                                       "elapsed_s": round(time.perf_counter() - started, 2)}, global_step)
+            bar.update(task.step - step)
+            bar.set_postfix(task=name, ret=f"{episode.ret:.1f}", eval=f"{last_eval.get('episode_reward', 0):.1f}")
+            if task.step < budget and env_step // cfg.train.checkpoint_freq > last_ckpt_env // cfg.train.checkpoint_freq:
+                last_ckpt_env = env_step
+                self._save_resume(task, env, time.perf_counter() - started, last_eval_env, last_ckpt_env, last_eval)
+
+        self.method.end_task(task)
+        wall = time.perf_counter() - started
+        save_checkpoint(self.task_checkpoint(index), {
+            "task_index": index, "task": name, "config": cfg.to_dict(),
+            "world_model": world_model.state_dict(),
+            "method": self.method.carry_state(),
+            # The learner's heads are kept for pre-rollouts and inspection; chaining never reads them.
+            "learner": learner.heads.state_dict(),
+            "final_eval": last_eval, "wall_time_s": wall, "steps": task.step, "learner_steps": task.learner_steps,
+            "episodes": task.episodes, "log_positions": self.logger.positions(),
+        }, kind="task", domain=cfg.env.domain)
+        self.resume_checkpoint.unlink(missing_ok=True)
+        self.logger.print(f"[{name}] finished: eval return {last_eval['episode_reward']:.1f}"
+                          + (f" ({last_eval['fraction_of_optimal']:.0%} of optimal)" if "fraction_of_optimal" in last_eval else "")
+                          + f", {task.episodes} episodes, {wall:.0f} s")
+        self.write_summary()
+
+    # ---- evaluation --------------------------------------------------------------------------
+    def evaluate(self, task: TaskState) -> dict[str, float]:
+        """Mean undiscounted return of the learner's planner in eval mode on the current task."""
+        cfg = self.cfg
+        env_step = self.env_steps(task.step)
+        env = make_env(cfg.env.domain, task.name, cfg.env.dense_reward)
+        env.reset(seed=task_seed(cfg.train.seed, task.index, 3, env_step))
+        returns = []
+        for _ in range(cfg.train.eval_episodes):
+            episode = run_episode(env, cfg.env.episode_length,
+                                  lambda obs, t: task.learner.act(obs, task.step, eval_mode=True, first_step=t == 0))
+            returns.append(episode.ret)
+        result = {"episode_reward": float(np.mean(returns)), "episode_reward_std": float(np.std(returns))}
+        optimum = task_optimum(cfg.env.domain, task.name, cfg.env.dense_reward)
+        if optimum:
+            result["optimal_return"] = optimum
+            result["fraction_of_optimal"] = result["episode_reward"] / optimum
+        row = {"task": task.name, "task_index": task.index, "step": task.step, "learner_step": task.learner_steps,
+               "env_step": env_step, **result}
+        self.logger.log("eval", row, self.env_steps(task.index * cfg.train.steps_per_task + task.step))
+        self.logger.print(f"[{task.name}] env_step {env_step:>7d}  eval return {result['episode_reward']:7.1f}"
+                          + (f"  ({result['fraction_of_optimal']:.0%} of optimal {optimum:.1f})" if optimum else ""))
+        return result
+
+    # ---- resumable snapshots -------------------------------------------------------------------
+    def _save_resume(self, task: TaskState, env, elapsed: float, last_eval_env: int, last_ckpt_env: int,
+                     last_eval: dict[str, float]) -> None:
+        save_checkpoint(self.resume_checkpoint, {
+            "task_index": task.index, "step": task.step, "learner_steps": task.learner_steps,
+            "episodes": task.episodes, "world_model": task.world_model.state_dict(),
+            "world_optimizer": task.world_optimizer.state_dict(), "learner": task.learner.state_dict(),
+            "buffer": task.buffer.state_dict(), "method_task": self.method.task_state_dict(task),
+            "rng": rng_state(task.rng), "env_rng": rng_state(env.np_random), "torch_rng": torch.get_rng_state(),
+            "elapsed": elapsed, "last_eval_env": last_eval_env, "last_ckpt_env": last_ckpt_env,
+            "last_eval": last_eval, "log_positions": self.logger.positions(),
+        }, kind="resume", domain=self.cfg.env.domain)
+
+    def _try_resume(self, task: TaskState, env) -> tuple[float, int, int, dict[str, float]] | None:
+        if not self.resume_checkpoint.exists():
+            return None
+        state = load_checkpoint(self.resume_checkpoint, kind="resume", domain=self.cfg.env.domain,
+                                map_location=self.device)
+        if state["task_index"] != task.index:
+            return None
+        task.world_model.load_state_dict(state["world_model"])
+        task.world_optimizer.load_state_dict(state["world_optimizer"])
+        task.learner.load_state_dict(state["learner"])
+        task.buffer.load_state_dict(state["buffer"])
+        self.method.load_task_state_dict(task, state["method_task"])
+        set_rng_state(task.rng, state["rng"])
+        set_rng_state(env.np_random, state["env_rng"])
+        torch.set_rng_state(state["torch_rng"])
+        task.step, task.learner_steps, task.episodes = state["step"], state["learner_steps"], state["episodes"]
+        self.logger.restore(state["log_positions"])
+        return state["elapsed"], state["last_eval_env"], state["last_ckpt_env"], state["last_eval"]
+
+    # ---- summary -------------------------------------------------------------------------------
+    def write_summary(self) -> dict[str, Any]:
+        cfg = self.cfg
+        tasks = []
+        for index, name in enumerate(cfg.env.tasks):
+            path = self.task_checkpoint(index)
+            if not path.exists():
+                continue
+            data = load_checkpoint(path, kind="task", domain=cfg.env.domain)
+            final = data["final_eval"]
+            tasks.append({"index": index, "name": name, "final_eval_return": final["episode_reward"],
+                          "final_eval_return_std": final["episode_reward_std"],
+                          "optimal_return": final.get("optimal_return"),
+                          "fraction_of_optimal": final.get("fraction_of_optimal"),
+                          "steps": data["steps"], "learner_steps": data["learner_steps"],
+                          "env_steps": self.env_steps(data["steps"]), "episodes": data["episodes"],
+                          "wall_time_s": round(data["wall_time_s"], 2), "checkpoint": str(path.relative_to(self.run_dir))})
+        summary = {"preset": cfg.preset, "method": cfg.method.name, "seed": cfg.train.seed, "domain": cfg.env.domain,
+                   "tasks_planned": list(cfg.env.tasks), "complete": len(tasks) == len(cfg.env.tasks),
+                   "tasks": tasks, "wall_time_s": round(sum(t["wall_time_s"] for t in tasks), 2)}
+        tmp = self.run_dir / "summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        tmp.replace(self.run_dir / "summary.json")
+        return summary

@@ -102,7 +102,13 @@ def main(argv: list[str] | None = None) -> int:
     from drago.train.run import RunDirError
 
     try:
-        args = _parser().parse_args(argv)
+        args, extra = _parser().parse_known_args(argv)
+        # Overrides may come before or after options; argparse alone keeps only the first group.
+        unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command != "train"]
+        if unknown:
+            raise UsageError(f"unrecognized arguments: {' '.join(unknown)}")
+        if args.command == "train":
+            args.overrides = [*args.overrides, *extra]
         return COMMANDS[args.command](args)
     except (UsageError, ConfigError, CheckpointError, RunDirError) as err:
         print(f"drago: error: {err}", file=sys.stderr)

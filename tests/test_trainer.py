@@ -1,0 +1,274 @@
+"""End-to-end behaviour of the continual trainer on the `smoke` preset (spec §3.9-3.10).
+
+One smoke run (four tasks of 400 agent steps) takes a few seconds; the module shares one reference run.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from drago import cli
+from drago.agent.networks import WorldModel
+from drago.config import Config, load_config
+from drago.continual import METHODS
+from drago.continual.naive import Continual, Scratch
+from drago.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+
+TASKS = ("room1", "room2", "room3", "room4")
+QUIET = ["--no-progress", "train.tensorboard=false"]
+DRAGO = Path(sys.executable).parent / "drago"
+
+
+def train(out: Path, *extra: str) -> int:
+    return cli.main(["train", "smoke", "--out", str(out), *QUIET, *extra])
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> Path:
+    """A complete smoke run with seed 1 (the preset's), uninterrupted."""
+    out = tmp_path_factory.mktemp("reference") / "run"
+    assert train(out) == 0
+    return out
+
+
+def task_checkpoints(run: Path) -> list[Path]:
+    return [run / "checkpoints" / f"task{i + 1}_{name}.pt" for i, name in enumerate(TASKS)]
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def all_keys(value, prefix="") -> list[str]:
+    if isinstance(value, dict):
+        out = []
+        for k, v in value.items():
+            out.append(f"{prefix}{k}")
+            out.extend(all_keys(v, f"{prefix}{k}."))
+        return out
+    return []
+
+
+def assert_same_state(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def differs(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
+    return any(not torch.equal(a[k], b[k]) for k in a)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Outputs of a complete run
+# ---------------------------------------------------------------------------------------------------
+def test_smoke_run_writes_every_output(reference):
+    for name in ("config.yaml", "train.csv", "eval.csv", "timing.csv", "console.log", "summary.json"):
+        assert (reference / name).is_file(), name
+    cfg = Config.from_dict(yaml.safe_load((reference / "config.yaml").read_text()))
+    assert cfg == load_config("smoke", ["train.tensorboard=false"])
+
+    summary = json.loads((reference / "summary.json").read_text())
+    assert summary["complete"] is True
+    assert [t["name"] for t in summary["tasks"]] == list(TASKS)
+    assert all(t["steps"] == 400 and t["episodes"] == 4 for t in summary["tasks"])
+
+    train_rows = read_csv(reference / "train.csv")
+    assert [(r["task"], int(r["episode"])) for r in train_rows] == [(t, e) for t in TASKS for e in range(1, 5)]
+    # Updates start once the 200-step seed phase is over: the first two episodes of a task log no loss.
+    for r in train_rows:
+        has_loss = r["learner_total_loss"] != ""
+        assert has_loss == (int(r["episode"]) > 2)
+    eval_rows = read_csv(reference / "eval.csv")
+    # Evaluations at the start, every 200 env steps and at the end of each task.
+    assert [(r["task"], int(r["env_step"])) for r in eval_rows] == [(t, s) for t in TASKS for s in (0, 200, 400)]
+
+    ckpt = reference / "checkpoints"
+    assert sorted(p.name for p in ckpt.iterdir()) == sorted(p.name for p in task_checkpoints(reference))
+    assert not list(ckpt.glob("*.tmp")) and not list(ckpt.glob(".*"))  # no temporary file, no resume.pt left
+
+
+def test_task_checkpoint_holds_the_world_model_and_no_training_state(reference):
+    for index, path in enumerate(task_checkpoints(reference)):
+        data = load_checkpoint(path, kind="task", domain="minigrid")
+        assert data["kind"] == "task" and data["task_index"] == index
+        model = WorldModel(3, 3, 32, use_crelu=True, squash=True)
+        model.load_state_dict(data["world_model"])  # strict: exactly a world model's tensors
+        keys = " ".join(all_keys({k: v for k, v in data.items() if k != "config"})).lower()
+        assert "optimizer" not in keys and "buffer" not in keys and "exp_avg" not in keys and "rng" not in keys
+    # Each task ends with a different world model (it was trained on that task).
+    models = [load_checkpoint(p)["world_model"] for p in task_checkpoints(reference)]
+    assert all(differs(a, b) for a, b in zip(models, models[1:]))
+
+
+@pytest.mark.parametrize("case", ["wrong-domain", "wrong-kind", "truncated", "foreign-torch-file", "missing",
+                                  "garbage", "newer-version"])
+def test_load_checkpoint_rejects_bad_files_with_one_line(reference, tmp_path, case):
+    good = task_checkpoints(reference)[0]
+    kwargs = {"kind": "task", "domain": "minigrid"}
+    path = tmp_path / "ckpt.pt"
+    if case == "wrong-domain":
+        path, kwargs = good, {"kind": "task", "domain": "cheetah"}
+    elif case == "wrong-kind":
+        path, kwargs = good, {"kind": "resume", "domain": "minigrid"}
+    elif case == "truncated":
+        data = good.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+    elif case == "foreign-torch-file":
+        torch.save({"world_model": {"w": torch.zeros(2)}, "kind": "task"}, path)
+    elif case == "garbage":
+        path.write_bytes(os.urandom(4096))
+    elif case == "newer-version":
+        save_checkpoint(path, {"world_model": {}}, kind="task", domain="minigrid")
+        data = torch.load(path, weights_only=True)
+        data["version"] = 99
+        torch.save(data, path)
+    with pytest.raises(CheckpointError) as info:
+        load_checkpoint(path, **kwargs)
+    message = str(info.value)
+    print(f"{case}: {message}")
+    assert message and "\n" not in message
+
+
+# ---------------------------------------------------------------------------------------------------
+# Determinism
+# ---------------------------------------------------------------------------------------------------
+def test_same_seed_gives_identical_logs_and_another_seed_does_not(reference, tmp_path):
+    same, other = tmp_path / "same", tmp_path / "other"
+    assert train(same) == 0
+    for name in ("train.csv", "eval.csv"):
+        assert (same / name).read_bytes() == (reference / name).read_bytes(), name
+    assert train(other, "--seed", "2") == 0
+    assert (other / "train.csv").read_bytes() != (reference / "train.csv").read_bytes()
+
+
+# ---------------------------------------------------------------------------------------------------
+# Chaining the world model from task to task (spec §3.10)
+# ---------------------------------------------------------------------------------------------------
+def _probe(base: type) -> type:
+    class Probe(base):
+        begun: dict[int, dict[str, torch.Tensor]] = {}
+        ended: dict[int, dict[str, torch.Tensor]] = {}
+
+        def begin_task(self, task):
+            super().begin_task(task)
+            Probe.begun[task.index] = {k: v.detach().clone() for k, v in task.world_model.state_dict().items()}
+
+        def end_task(self, task):
+            super().end_task(task)
+            Probe.ended[task.index] = {k: v.detach().clone() for k, v in task.world_model.state_dict().items()}
+
+    return Probe
+
+
+@pytest.mark.parametrize("base", [Continual, Scratch], ids=["continual", "scratch"])
+def test_world_model_chaining(base, tmp_path, monkeypatch):
+    probe = _probe(base)
+    monkeypatch.setitem(METHODS, "probe", probe)
+    out = tmp_path / "run"
+    assert train(out, "--method", "probe", "env.tasks=[room1,room2]") == 0
+    saved = load_checkpoint(out / "checkpoints" / "task1_room1.pt", kind="task")["world_model"]
+    assert_same_state(probe.ended[0], saved)  # the checkpoint is the world model task 1 ended with
+    assert differs(probe.begun[0], probe.ended[0])  # and task 1 did train it
+    if base is Continual:
+        assert_same_state(probe.begun[1], saved)
+    else:
+        assert differs(probe.begun[1], saved)
+        # Every tensor is fresh, the EMA target included.
+        assert all(not torch.equal(probe.begun[1][k], saved[k]) for k in saved)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Crash and resume
+# ---------------------------------------------------------------------------------------------------
+def test_resume_after_crash_replays_the_uninterrupted_run(reference, tmp_path, monkeypatch):
+    run = tmp_path / "crashed"
+    original = Continual.gradient_step
+    calls = {"task2": 0}
+
+    def crashing_gradient_step(self, task, u):
+        if task.index == 1:
+            calls["task2"] += 1
+            # Task 2 has 20 gradient steps (episodes 3 and 4); the periodic checkpoint is at step 200,
+            # so the crash comes after episode 3 was logged past that checkpoint.
+            if calls["task2"] > 15:
+                raise RuntimeError("simulated crash")
+        return original(self, task, u)
+
+    with monkeypatch.context() as m:
+        m.setattr(Continual, "gradient_step", crashing_gradient_step)
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            train(run)
+    ckpt = run / "checkpoints"
+    assert (ckpt / "resume.pt").is_file() and (ckpt / "task1_room1.pt").is_file()
+    assert not (ckpt / "task2_room2.pt").exists()
+    assert load_checkpoint(ckpt / "resume.pt", kind="resume")["task_index"] == 1
+    rows = read_csv(run / "train.csv")
+    assert rows[-1]["task"] == "room2" and rows[-1]["episode"] == "3"  # a row past the checkpoint
+    assert json.loads((run / "summary.json").read_text())["complete"] is False
+
+    assert cli.main(["resume", str(run), "--no-progress"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["complete"] is True and [t["name"] for t in summary["tasks"]] == list(TASKS)
+    assert not (ckpt / "resume.pt").exists()
+    for name in ("train.csv", "eval.csv"):
+        assert (run / name).read_bytes() == (reference / name).read_bytes(), name
+    for mine, ref in zip(task_checkpoints(run), task_checkpoints(reference)):
+        assert_same_state(load_checkpoint(mine)["world_model"], load_checkpoint(ref)["world_model"])
+
+
+def test_resume_of_a_complete_run_is_a_no_op(reference, capsys):
+    before = {n: (reference / n).read_bytes() for n in ("train.csv", "eval.csv")}
+    assert cli.main(["resume", str(reference), "--no-progress"]) == 0
+    assert "already complete" in capsys.readouterr().out
+    assert before == {n: (reference / n).read_bytes() for n in ("train.csv", "eval.csv")}
+
+
+def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
+    run = tmp_path / "killed"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    log = (tmp_path / "train.log").open("w")
+    # Longer tasks with frequent checkpoints leave a wide window inside task 2.
+    proc = subprocess.Popen([str(DRAGO), "train", "smoke", "--out", str(run), *QUIET,
+                             "train.steps_per_task=1000", "train.checkpoint_freq=100"],
+                            stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp_path)
+    resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
+    deadline = time.monotonic() + 60
+    try:
+        while not (resume_ckpt.exists() and task1.exists()):
+            assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
+            assert time.monotonic() < deadline, "no periodic checkpoint in task 2 within 60 s"
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill() if proc.poll() is None else None
+        proc.wait()
+        log.close()
+    assert proc.returncode == -signal.SIGKILL
+    assert not (run / "checkpoints" / "task4_room4.pt").exists()
+
+    done = subprocess.run([str(DRAGO), "resume", str(run), "--no-progress"], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=120)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["complete"] is True
+    assert [t["name"] for t in summary["tasks"]] == list(TASKS)
+    assert all(t["steps"] == 1000 for t in summary["tasks"])
+    # The logs hold every episode exactly once: rows written after the last checkpoint were cut back.
+    rows = read_csv(run / "train.csv")
+    assert [(r["task"], int(r["episode"])) for r in rows] == [(t, e) for t in TASKS for e in range(1, 11)]
+    evals = read_csv(run / "eval.csv")
+    assert [(r["task"], int(r["env_step"])) for r in evals] == [(t, s) for t in TASKS for s in (0, 200, 400, 600,
+                                                                                              800, 1000)]

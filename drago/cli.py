@@ -6,6 +6,7 @@ Every user error ends as one line ``drago: error: ...`` on stderr with exit code
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -26,14 +27,15 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
-    train = sub.add_parser("train", help="run a continual task sequence")
+    train = sub.add_parser("train", help="run a continual task sequence",
+                           usage="drago train PRESET [options] [key=value ...]",
+                           epilog="key=value overrides any setting, e.g. agent.mlp_dim=256 (see `drago list --settings`)")
     train.add_argument("preset", help="preset name (see `drago list`)")
     train.add_argument("--method", default=None, help="continual method (default: the preset's, continual)")
     train.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, 1)")
     train.add_argument("--out", type=Path, default=None, help="run directory (default runs/PRESET/METHOD/seedS)")
     train.add_argument("--force", action="store_true", help="overwrite an existing run directory")
     train.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
-    train.add_argument("overrides", nargs="*", metavar="key=value", help="settings, e.g. agent.mlp_dim=256")
 
     resume = sub.add_parser("resume", help="continue a run that was interrupted")
     resume.add_argument("run_dir", type=Path)
@@ -107,12 +109,15 @@ def main(argv: list[str] | None = None) -> int:
         unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command != "train"]
         if unknown:
             raise UsageError(f"unrecognized arguments: {' '.join(unknown)}")
-        if args.command == "train":
-            args.overrides = [*args.overrides, *extra]
+        args.overrides = extra
         return COMMANDS[args.command](args)
     except (UsageError, ConfigError, CheckpointError, RunDirError) as err:
         print(f"drago: error: {err}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:
+        # `drago list | head`: the reader left; say nothing more and do not flush into a closed pipe.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print("drago: interrupted; continue with `drago resume RUN_DIR`", file=sys.stderr)
         return 130

@@ -239,11 +239,14 @@ def _resolve_type(annotation: Any) -> Any:
 
 def _parse(raw: str, annotation: Any, key: str) -> Any:
     """Parse a command-line string with YAML rules, then check it against the declared type."""
+    return _coerce(_parse_scalar(raw) if raw != "" else "", annotation, key)
+
+
+def _parse_scalar(raw: str) -> Any:
     try:
-        value = yaml.safe_load(raw) if raw != "" else ""
+        return yaml.safe_load(raw)
     except yaml.YAMLError:
-        value = raw
-    return _coerce(value, annotation, key)
+        return raw
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
@@ -259,7 +262,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
         return _coerce(value, inner[0], key)
     if origin is tuple:
         if isinstance(value, str):
-            value = [v.strip() for v in value.strip("()[]").split(",") if v.strip()]
+            value = [_parse_scalar(v.strip()) for v in value.strip("()[]").split(",") if v.strip()]
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"setting '{key}' expects a list, got {value!r}")
         return tuple(_coerce(v, args[0], key) for v in value)

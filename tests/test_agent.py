@@ -415,13 +415,18 @@ def test_plan_discrete_returns_a_one_hot():
 
 
 @pytest.mark.parametrize("paid", [0, 1, 2])
-def test_plan_discrete_picks_the_only_rewarded_action(monkeypatch, paid):
+@pytest.mark.parametrize("variant", ["cem", "one-shot-argmax"])
+def test_plan_discrete_picks_the_only_rewarded_action(monkeypatch, paid, variant):
+    """CEM converges on the paid action; with one iteration and every sample an elite, "argmax" must
+    still return the best sequence's first action (the worst one would almost surely differ)."""
     wm, heads = make_world(), make_heads()
     monkeypatch.setattr(heads, "predict_reward", lambda z, a: a[..., paid])
+    s = settings() if variant == "cem" else settings(iterations=1, num_samples=64, num_elites=64,
+                                                         num_policy_trajectories=0)
     torch.manual_seed(paid)
     for eval_mode in (False, True):
         for obs in (torch.tensor([0.5, 0.5, 0.0]), torch.tensor([-0.9, 0.1, 1.0])):
-            a = plan_discrete(wm, heads, obs, settings(), eval_mode)
+            a = plan_discrete(wm, heads, obs, s, eval_mode)
             assert a.argmax().item() == paid
 
 

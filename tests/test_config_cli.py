@@ -70,10 +70,6 @@ def test_dotted_and_short_overrides_with_type_conversion():
     assert cfg.updates_per_episode == cfg.env.episode_length  # None means one update per agent step
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "library bug (drago/config.py _coerce): a tuple written as a comma-separated or parenthesised string "
-    "is split into strings that are never parsed, so numeric tuples fail with \"setting "
-    "'agent.random_action_probs' expects a number, got '0.1'\"; only the YAML list form [0.1,0.1,0.8] works"))
 @pytest.mark.parametrize("raw", ["(0.1,0.1,0.8)", "0.1,0.1,0.8"])
 def test_numeric_tuple_override_from_plain_string(raw):
     cfg = load_config("smoke", [f"agent.random_action_probs={raw}"])
@@ -215,6 +211,18 @@ def test_bad_invocation_messages_name_the_problem(capsys):
     for name, fragment in expected.items():
         if name in MESSAGES:
             assert fragment in MESSAGES[name], (name, MESSAGES[name])
+
+
+def test_resume_corrupt_checkpoint_with_progress_bar_is_one_line(tmp_path, capsys):
+    run = _corrupt_task_checkpoint(tmp_path)
+    assert cli.main(["resume", str(run)]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1, lines
+
+
+def test_missing_preset_message_does_not_require_overrides(capsys):
+    assert cli.main(["train"]) == 2
+    assert "key=value" not in capsys.readouterr().err
 
 
 def test_bad_config_writes_no_run_dir(tmp_path, capsys):

@@ -237,27 +237,41 @@ def test_resume_of_a_complete_run_is_a_no_op(reference, capsys):
 
 
 def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
+    """A real crash: SIGKILL inside task 2, after a periodic checkpoint; `drago resume` then finishes the
+    sequence and, because the checkpoint carries every RNG state, writes the logs of an uninterrupted run."""
     run = tmp_path / "killed"
+    # Longer tasks with frequent checkpoints leave a wide window inside task 2.
+    longer = ["train.steps_per_task=600", "train.checkpoint_freq=100"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     log = (tmp_path / "train.log").open("w")
-    # Longer tasks with frequent checkpoints leave a wide window inside task 2.
-    proc = subprocess.Popen([str(DRAGO), "train", "smoke", "--out", str(run), *QUIET,
-                             "train.steps_per_task=1000", "train.checkpoint_freq=100"],
+    proc = subprocess.Popen([str(DRAGO), "train", "smoke", "--out", str(run), *QUIET, *longer],
                             stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp_path)
     resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
     deadline = time.monotonic() + 60
+
+    def in_task2_with_checkpoint() -> bool:
+        # resume.pt newer than task 1's checkpoint: a periodic snapshot of task 2 (or later), not task 1's
+        # last one (which exists for a moment next to task1_room1.pt before it is deleted).
+        try:
+            return resume_ckpt.stat().st_mtime_ns > task1.stat().st_mtime_ns
+        except FileNotFoundError:
+            return False
+
     try:
-        while not (resume_ckpt.exists() and task1.exists()):
+        while not in_task2_with_checkpoint():
             assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
             assert time.monotonic() < deadline, "no periodic checkpoint in task 2 within 60 s"
             time.sleep(0.02)
         proc.send_signal(signal.SIGKILL)
     finally:
-        proc.kill() if proc.poll() is None else None
+        if proc.poll() is None:
+            proc.kill()
         proc.wait()
         log.close()
     assert proc.returncode == -signal.SIGKILL
     assert not (run / "checkpoints" / "task4_room4.pt").exists()
+    assert load_checkpoint(resume_ckpt, kind="resume")["task_index"] >= 1
+    assert not json.loads((run / "summary.json").read_text())["complete"]
 
     done = subprocess.run([str(DRAGO), "resume", str(run), "--no-progress"], capture_output=True, text=True,
                           env=env, cwd=tmp_path, timeout=120)
@@ -265,10 +279,15 @@ def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["complete"] is True
     assert [t["name"] for t in summary["tasks"]] == list(TASKS)
-    assert all(t["steps"] == 1000 for t in summary["tasks"])
+    assert all(t["steps"] == 600 for t in summary["tasks"])
     # The logs hold every episode exactly once: rows written after the last checkpoint were cut back.
     rows = read_csv(run / "train.csv")
-    assert [(r["task"], int(r["episode"])) for r in rows] == [(t, e) for t in TASKS for e in range(1, 11)]
+    assert [(r["task"], int(r["episode"])) for r in rows] == [(t, e) for t in TASKS for e in range(1, 7)]
     evals = read_csv(run / "eval.csv")
-    assert [(r["task"], int(r["env_step"])) for r in evals] == [(t, s) for t in TASKS for s in (0, 200, 400, 600,
-                                                                                              800, 1000)]
+    assert [(r["task"], int(r["env_step"])) for r in evals] == [(t, s) for t in TASKS for s in (0, 200, 400, 600)]
+
+    # And they are the logs of the same run never interrupted.
+    uninterrupted = tmp_path / "uninterrupted"
+    assert train(uninterrupted, *longer) == 0
+    for name in ("train.csv", "eval.csv"):
+        assert (run / name).read_bytes() == (uninterrupted / name).read_bytes(), name

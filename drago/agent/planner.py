@@ -74,6 +74,15 @@ def policy_trajectories(world_model: WorldModel, heads: TaskHeads, z0: torch.Ten
     return torch.stack(out)
 
 
+def _policy_prior(world_model: WorldModel, heads: TaskHeads, z0: torch.Tensor, s: PlanSettings,
+                  deterministic: bool) -> torch.Tensor | None:
+    """The policy's own trajectories, added to every CEM iteration's samples (``mixture_coef``)."""
+    if s.num_policy_trajectories == 0:
+        return None
+    return policy_trajectories(world_model, heads, z0, s.num_policy_trajectories, s.horizon, s.policy_std,
+                               deterministic)
+
+
 def _elite_weights(returns: torch.Tensor, num_elites: int, temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
     elite_returns, elite_idx = torch.topk(returns, num_elites)
     weights = torch.softmax(temperature * elite_returns, dim=0)  # = exp(T(G - max G)) normalised
@@ -96,10 +105,7 @@ def plan_discrete(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, 
     """
     n_a = world_model.action_dim
     z0 = world_model.encode(obs)
-    pi_actions = None
-    if s.num_policy_trajectories > 0:
-        pi_actions = policy_trajectories(world_model, heads, z0, s.num_policy_trajectories, s.horizon,
-                                         s.policy_std, deterministic=eval_mode)
+    pi_actions = _policy_prior(world_model, heads, z0, s, deterministic=eval_mode)
     mean = obs.new_full((s.horizon, n_a), 1.0 / n_a)
     for _ in range(s.iterations):
         idx = torch.multinomial(mean, s.num_samples, replacement=True)  # (h, num_samples)
@@ -125,10 +131,8 @@ def plan_continuous(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor
     """
     n_a = world_model.action_dim
     z0 = world_model.encode(obs)
-    pi_actions = None
-    if s.num_policy_trajectories > 0:
-        pi_actions = policy_trajectories(world_model, heads, z0, s.num_policy_trajectories, s.horizon,
-                                         s.policy_std, deterministic=False)
+    # TD-MPC keeps the continuous policy's noise even when evaluating.
+    pi_actions = _policy_prior(world_model, heads, z0, s, deterministic=False)
     mean = obs.new_zeros((s.horizon, n_a))
     std = obs.new_full((s.horizon, n_a), s.max_std)
     if warm_mean is not None:

@@ -41,6 +41,9 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any], kind: str, domain
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = {"format": FORMAT, "version": VERSION, "kind": kind, "domain": domain, **payload}
+    # A process killed mid-write leaves its temporary file behind; the next save clears it.
+    for stale in path.parent.glob(f".{path.name}.*.tmp"):
+        stale.unlink(missing_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
@@ -74,9 +77,10 @@ def load_checkpoint(path: str | Path, kind: str | None = None, domain: str | Non
     try:
         # Only tensors and plain Python values are stored, so nothing executable is ever unpickled.
         data = torch.load(path, map_location=map_location, weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as err:
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(f"checkpoint {path} is corrupt or not a drago checkpoint ({reason[:120]})") from None
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError):
+        # torch's own message advises loosening weights_only, which is the wrong advice here.
+        raise CheckpointError(f"checkpoint {path} is corrupt or not a drago checkpoint; "
+                              "delete it to redo that part of the run") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a drago checkpoint")
     if data.get("version", 0) > VERSION:

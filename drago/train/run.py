@@ -57,6 +57,8 @@ def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = Tr
 def resume(run_dir: Path, progress: bool = True) -> Trainer:
     """Rebuild the trainer of an existing run; it continues where the last checkpoint left off."""
     config_path = run_dir / CONFIG_FILE
+    if not run_dir.exists():
+        raise RunDirError(f"run directory {run_dir} does not exist")
     if not config_path.is_file():
         raise RunDirError(f"{run_dir} is not a drago run directory (no {CONFIG_FILE})")
     try:
@@ -68,6 +70,9 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
     cfg = Config.from_dict(data)
     device = resolve_device(cfg.train.device)
     trainer = _build(cfg, run_dir, device, progress)
+    # Read every finished task's checkpoint now, so a damaged one fails before any work starts.
+    for index in range(trainer.completed_tasks()):
+        load_checkpoint(trainer.task_checkpoint(index), kind="task", domain=cfg.env.domain)
     # TensorBoard must forget the events written after the checkpoint the run continues from.
     if trainer.resume_checkpoint.exists():
         state = load_checkpoint(trainer.resume_checkpoint, kind="resume", domain=cfg.env.domain)

@@ -43,6 +43,16 @@ def _parser() -> argparse.ArgumentParser:
 
     listing = sub.add_parser("list", help="presets, tasks and methods (and settings with --settings)")
     listing.add_argument("--settings", action="store_true", help="also list every setting with its default")
+
+    evaluate = sub.add_parser("eval", help="evaluate finished runs (see `drago eval coverage -h`)")
+    eval_sub = evaluate.add_subparsers(dest="eval_command", metavar="EVALUATION", parser_class=_Parser)
+    eval_sub.required = True
+    coverage = eval_sub.add_parser("coverage", help="world-model accuracy per room after each task (grid)",
+                                   usage="drago eval coverage RUN_DIR [RUN_DIR ...] [--out CSV]",
+                                   description="Writes coverage.csv into each run directory.")
+    coverage.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
+    coverage.add_argument("--out", type=Path, default=None, metavar="CSV",
+                          help="also write every run's rows into this one CSV")
     return parser
 
 
@@ -95,7 +105,32 @@ def _cmd_list(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"train": _cmd_train, "resume": _cmd_resume, "list": _cmd_list}
+def _cmd_eval_coverage(args: argparse.Namespace) -> int:
+    from drago.eval.coverage import COVERAGE_FILE, coverage_of_run, format_table, run_checkpoints, write_coverage_csv
+
+    # Check every run before evaluating any, so a typo in the last argument fails at once.
+    for run_dir in args.run_dirs:
+        run_checkpoints(run_dir)
+    rows = []
+    for run_dir in args.run_dirs:
+        run_rows = coverage_of_run(run_dir)
+        write_coverage_csv(run_rows, run_dir / COVERAGE_FILE)
+        rows.extend(run_rows)
+    print("exact-match accuracy of the world model after each task:")
+    for line in format_table(rows):
+        print(line)
+    for run_dir in args.run_dirs:
+        print(f"wrote {run_dir / COVERAGE_FILE}")
+    if args.out is not None:
+        print(f"wrote {write_coverage_csv(rows, args.out)}")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    return {"coverage": _cmd_eval_coverage}[args.eval_command](args)
+
+
+COMMANDS = {"train": _cmd_train, "resume": _cmd_resume, "list": _cmd_list, "eval": _cmd_eval}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -91,9 +91,35 @@ class TrainConfig:
 
 @dataclass
 class MethodConfig:
-    """The continual-learning method and its own settings."""
+    """The continual-learning method and the settings of every method (each reads only its own)."""
 
     name: str = "continual"
+    # -- DRAGO: generative model over (observation, action) (spec §3.2) --
+    vae_hidden_dim: int = 64  # code: 64 grid, 256 DMC (the paper's "vae latent dim")
+    vae_latent_dim: int = 64
+    vae_recon_coef: float = 1.0
+    vae_kl_coef: float = 1.0  # code: 1.0 grid, 0.02 DMC; the paper's table says 0.02
+    vae_data: str = "combined"  # combined: reviewer + learner rows (code); learner: learner rows only (paper Alg. 3)
+    # -- DRAGO: synthetic rehearsal (spec §3.3) --
+    rehearsal_freq: int = 1  # every this many gradient steps (code: 1 grid, 10 DMC; paper: 10, 20)
+    rehearsal_batch: int = 512
+    rehearsal_mode: str = "separate"  # separate: own optimizer step of weight 1 (code); joint: lambda-weighted term (paper)
+    rehearsal_lambda: float = 1.0  # weight of the rehearsal term in joint mode
+    rehearsal_target: str = "pre_squash"  # pre_squash: raw MLP outputs (code); post_squash: as the planner sees them
+    # -- DRAGO: reviewer (spec §3.5-3.8) --
+    intrinsic_reward: str = "code"  # code: sigmoid(4(-log MSE_old - theta)) - a*sigmoid(-log MSE_cur - theta); paper: no theta, abs error
+    cost_coef: float = 0.5  # alpha, the weight of the current model's familiarity
+    initial_threshold: float = 9.5  # theta of task 2 when the checkpoint has none
+    threshold_momentum: float = 0.9  # theta_new <- m * theta_new + (1 - m) * prediction score
+    pseudo_counts: bool = True  # count bonus in reviewer planning (code only, not in the paper)
+    # -- EWC --
+    ewc_coef: float = 100.0  # weight of the quadratic penalty on the world model
+    ewc_fisher_batches: int = 50  # batches of the task's data used to estimate the diagonal Fisher
+    # -- bounded replay --
+    replay_capacity: int = 2163  # transitions kept across tasks; default: floats of the grid VAE (spec §2.1)
+    replay_fraction: float = 0.5  # share of world-model rows drawn from the old-task buffer
+    # -- curiosity --
+    curiosity_coef: float = 1.0  # prediction-error bonus added to the learner's TD target
 
 
 @dataclass
@@ -339,6 +365,22 @@ def validate(cfg: Config) -> None:
     probs = cfg.agent.random_action_probs
     if len(probs) != 3 or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
         raise ConfigError(f"agent.random_action_probs must be three non-negative numbers summing to 1, got {probs}")
+    m = cfg.method
+    choices = {"vae_data": ("combined", "learner"), "rehearsal_mode": ("separate", "joint"),
+               "rehearsal_target": ("pre_squash", "post_squash"), "intrinsic_reward": ("code", "paper")}
+    for key, valid in choices.items():
+        if getattr(m, key) not in valid:
+            raise ConfigError(f"unknown method.{key} '{getattr(m, key)}'; valid choices: {', '.join(valid)}")
+    for key in ("vae_hidden_dim", "vae_latent_dim", "rehearsal_freq", "rehearsal_batch", "ewc_fisher_batches",
+                "replay_capacity"):
+        if getattr(m, key) <= 0:
+            raise ConfigError(f"setting 'method.{key}' must be positive, got {getattr(m, key)}")
+    for key in ("vae_recon_coef", "vae_kl_coef", "rehearsal_lambda", "cost_coef", "ewc_coef", "curiosity_coef"):
+        if getattr(m, key) < 0:
+            raise ConfigError(f"setting 'method.{key}' must be >= 0, got {getattr(m, key)}")
+    for key in ("threshold_momentum", "replay_fraction"):
+        if not 0.0 <= getattr(m, key) <= 1.0:
+            raise ConfigError(f"setting 'method.{key}' must lie in [0, 1], got {getattr(m, key)}")
     device = cfg.train.device
     if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
         raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")

@@ -6,6 +6,7 @@ world model is fresh or carried over, and DRAGO's learner and reviewer share one
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -84,7 +85,8 @@ class Agent:
 
     # ---------------------------------------------------------------- learning
     def update(self, batch: Batch, step: int, train_world_model: bool = True, policy_rows: int | None = None,
-               td_reward_bonus: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+               curiosity_coef: float = 0.0,
+               world_model_loss: Callable[[], torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
         """One gradient step of spec §2.3 on a batch; returns metrics as tensors (no host sync).
 
         Args:
@@ -92,7 +94,9 @@ class Agent:
             step: task-local step index u, for the EMA period and the std schedule.
             train_world_model: include the consistency loss and step the world-model optimizer.
             policy_rows: the policy loss uses only the first rows (DRAGO's reviewer: its own data).
-            td_reward_bonus: (H, B) reward added inside the TD target only.
+            curiosity_coef: prediction-error bonus inside the TD target (curiosity baseline).
+            world_model_loss: an extra scalar loss on the world model, added to this step's objective
+                when the world model is trained (EWC penalty, replayed old transitions, joint rehearsal).
         """
         c = self.cfg
         self.std_floor = linear_schedule(c.std_schedule_start, c.min_std, c.std_schedule_steps, step)
@@ -101,9 +105,13 @@ class Agent:
             horizon=c.horizon, rho=c.rho, discount=c.discount, policy_std=c.min_std,
             consistency_coef=c.consistency_coef, reward_coef=c.reward_coef, value_coef=c.value_coef,
             first_step_qr_only=c.first_step_qr_only, train_world_model=train_world_model,
-            reviewer_priority=self.reviewer, td_reward_bonus=td_reward_bonus)
+            reviewer_priority=self.reviewer, curiosity_coef=curiosity_coef)
         # Scaling by 1/H is TD-MPC's gradient scaling, written on the loss.
         weighted = (batch.weights * losses.total).mean() / c.horizon
+        extra = None
+        if train_world_model and world_model_loss is not None:
+            extra = world_model_loss()
+            weighted = weighted + extra
 
         params = [*self.heads.reward.parameters(), *self.heads.q.parameters()]
         self.model_optimizer.zero_grad(set_to_none=True)
@@ -141,6 +149,7 @@ class Agent:
             "grad_norm": grad_norm.detach(),
             "pi_grad_norm": pi_grad_norm.detach(),
             "mean_prediction_score": losses.prediction_score.detach(),
+            **({"world_model_extra_loss": extra.detach()} if extra is not None else {}),
             "priority": losses.priority[:rows],
         }
 

@@ -49,7 +49,7 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
                  rewards: torch.Tensor, next_obs: torch.Tensor, *, horizon: int, rho: float, discount: float,
                  policy_std: float, consistency_coef: float, reward_coef: float, value_coef: float,
                  first_step_qr_only: bool, train_world_model: bool, reviewer_priority: bool = False,
-                 td_reward_bonus: torch.Tensor | None = None) -> ModelLosses:
+                 curiosity_coef: float = 0.0) -> ModelLosses:
     """Consistency, reward and value losses of one agent on one batch (spec §2.3 steps 1-3).
 
     Args:
@@ -59,7 +59,8 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
             dynamics rollout runs without a graph: the latents still feed the heads, but no world-model
             gradient is built for a loss that would be zero (DRAGO's learner in tasks >= 2).
         reviewer_priority: use the reviewer's priority r + 2 + |TD errors| instead of |TD errors|.
-        td_reward_bonus: (H, B) extra reward added inside the TD target only (curiosity baselines).
+        curiosity_coef: c in the TD target's reward r + c * e_t, with e_t the open-loop prediction error
+            of the current model (spec §2.3; the curiosity baseline). The reward head still fits r.
     """
     z = world_model.encode(obs)
     latents = [z]
@@ -86,7 +87,9 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
         next_z = targets.detach()
         next_pi = heads.act(next_z, policy_std)
         next_q = heads.q_values(next_z.flatten(0, 1), next_pi.flatten(0, 1), target=True).min(0).values
-        td_reward = rewards[:horizon] if td_reward_bonus is None else rewards[:horizon] + td_reward_bonus
+        td_reward = rewards[:horizon]
+        if curiosity_coef:
+            td_reward = td_reward + curiosity_coef * prediction_error(predicted.detach(), targets)
         td_target = td_reward + discount * next_q.view(horizon, batch)
 
     fitted = 1 if first_step_qr_only else horizon

@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 from drago.continual.base import ContinualMethod, TaskState
+from drago.continual.drago import Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal
 from drago.continual.naive import Continual, Scratch
 
 METHODS: dict[str, type[ContinualMethod]] = {
     "continual": Continual,
     "scratch": Scratch,
+    "drago": Drago,
+    "drago-no-rehearsal": DragoNoRehearsal,
+    "drago-no-reviewer": DragoNoReviewer,
+    "drago-single-agent": DragoSingleAgent,
+    "pseudo-rehearsal": PseudoRehearsal,
 }
 
 

@@ -33,6 +33,7 @@ class TaskState:
     learner: Agent
     buffer: EpisodeReplay
     rng: np.random.Generator
+    env: Any  # the task's env, shared by every episode of the task (as in the official code)
     step: int = 0  # task-local agent steps, learner and reviewer together (the official code's count)
     learner_steps: int = 0
     episodes: int = 0
@@ -63,7 +64,7 @@ class ContinualMethod:
         """Called after the task's last update and final evaluation, before its checkpoint."""
 
     # ---- inside an iteration ---------------------------------------------------------------
-    def collect(self, task: TaskState, make_env) -> dict[str, float]:
+    def collect(self, task: TaskState) -> dict[str, float]:
         """Extra data collection after each learner episode (DRAGO's reviewer); returns log values."""
         return {}
 

@@ -53,5 +53,9 @@ def task_optimum(domain: str, task: str, dense_reward: bool | None = None) -> fl
     return None
 
 
+# The official code's gymnasium id, so `gymnasium.make("MiniGrid-FourRooms-New", task="room2")` works.
+gym.register(id="MiniGrid-FourRooms-New", entry_point="drago.envs.fourrooms:make_fourrooms",
+             max_episode_steps=None)
+
 __all__ = ["EnvSpec", "GRID_SEQUENCES", "GRID_TASKS", "GridTask", "available_tasks", "env_spec", "make_env",
            "task_optimum"]

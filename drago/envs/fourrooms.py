@@ -25,7 +25,7 @@ from minigrid.core.mission import MissionSpace
 from minigrid.core.world_object import Goal, Wall
 from minigrid.minigrid_env import MiniGridEnv
 
-from drago.envs.tasks import GRID_SEQUENCES, GRID_TASKS, GridTask
+from drago.envs.tasks import GRID_SEQUENCES, GRID_TASKS, GridTask, get_grid_task
 
 __all__ = [
     "SIZE",
@@ -416,3 +416,8 @@ class FourRoomsEnv(MiniGridEnv):
         self.agent_pos = cell
         self.agent_dir = int(direction)
         return observation(self.agent_pos, self.agent_dir)
+
+
+def make_fourrooms(task: str = "room1", dense_reward: bool | None = None, render_mode: str | None = None) -> FourRoomsEnv:
+    """Entry point of the gymnasium id ``MiniGrid-FourRooms-New``: a task by name."""
+    return FourRoomsEnv(get_grid_task(task, dense=dense_reward), render_mode=render_mode)

@@ -136,7 +136,7 @@ class Trainer:
         buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, cfg.agent.horizon, cfg.env.episode_length,
                                cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
         task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,
-                         learner=learner, buffer=buffer, rng=rng)
+                         learner=learner, buffer=buffer, rng=rng, env=env)
         self.method.begin_task(task)
 
         elapsed = 0.0
@@ -173,10 +173,10 @@ class Trainer:
             task.step += L
             task.learner_steps += L
             task.episodes += 1
+            extra = self.method.collect(task)  # may add its own steps (DRAGO's reviewer episode)
             row: dict[str, Any] = {"task": name, "task_index": index, "episode": task.episodes, "step": task.step,
                                    "learner_step": task.learner_steps, "env_step": self.env_steps(task.step),
-                                   "episode_reward": episode.ret}
-            row.update(self.method.collect(task, make_env))
+                                   "episode_reward": episode.ret, **extra}
             t1 = time.perf_counter()
 
             metrics: dict[str, torch.Tensor] = {}

@@ -1,0 +1,26 @@
+"""Curiosity + continual TD-MPC (spec §5, the paper's appendix baseline).
+
+The learner's TD target gets the bonus ``c * e_t``, with ``e_t`` the open-loop multi-step prediction
+error of the current world model (spec §2.3), so the agent is drawn to transitions its carried-over
+model predicts badly. As in the official code the bonus enters the TD target only: the reward head
+still fits the environment reward, which is what the planner's reward predictions must be.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from drago.continual.base import ContinualMethod, TaskState
+
+
+class Curiosity(ContinualMethod):
+    """Continual TD-MPC whose critics value the world model's prediction error (``method.curiosity_coef``)."""
+
+    name = "curiosity"
+    description = "continual TD-MPC with a prediction-error bonus c * e_t in the learner's TD target"
+
+    def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
+        batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)
+        metrics = task.learner.update(batch, u, train_world_model=True, curiosity_coef=self.cfg.method.curiosity_coef)
+        task.buffer.update_priorities(batch.indices, metrics.pop("priority"))
+        return {f"learner_{k}": v for k, v in metrics.items()}

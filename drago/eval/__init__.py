@@ -1,0 +1,1 @@
+"""Evaluation of finished runs: world-model coverage (more measures and pictures come later)."""

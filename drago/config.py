@@ -378,9 +378,11 @@ def validate(cfg: Config) -> None:
     for key in ("vae_recon_coef", "vae_kl_coef", "rehearsal_lambda", "cost_coef", "ewc_coef", "curiosity_coef"):
         if getattr(m, key) < 0:
             raise ConfigError(f"setting 'method.{key}' must be >= 0, got {getattr(m, key)}")
-    for key in ("threshold_momentum", "replay_fraction"):
-        if not 0.0 <= getattr(m, key) <= 1.0:
-            raise ConfigError(f"setting 'method.{key}' must lie in [0, 1], got {getattr(m, key)}")
+    if not 0.0 <= m.threshold_momentum <= 1.0:
+        raise ConfigError(f"setting 'method.threshold_momentum' must lie in [0, 1], got {m.threshold_momentum}")
+    if not 0.0 <= m.replay_fraction < 1.0:
+        # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
+        raise ConfigError(f"setting 'method.replay_fraction' must lie in [0, 1), got {m.replay_fraction}")
     device = cfg.train.device
     if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
         raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from drago.continual.base import ContinualMethod, TaskState
+from drago.continual.curiosity import Curiosity
 from drago.continual.drago import Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal
+from drago.continual.ewc import EWC
 from drago.continual.naive import Continual, Scratch
+from drago.continual.replay import Replay
 
 METHODS: dict[str, type[ContinualMethod]] = {
     "continual": Continual,
@@ -14,6 +17,9 @@ METHODS: dict[str, type[ContinualMethod]] = {
     "drago-no-reviewer": DragoNoReviewer,
     "drago-single-agent": DragoSingleAgent,
     "pseudo-rehearsal": PseudoRehearsal,
+    "ewc": EWC,
+    "replay": Replay,
+    "curiosity": Curiosity,
 }
 
 

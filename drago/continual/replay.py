@@ -214,8 +214,8 @@ class Replay(ContinualMethod):
         return {f"learner_{k}": v for k, v in metrics.items()}
 
     def end_task(self, task: TaskState) -> None:
-        # The task buffer keeps every transition of the task unless it exceeded MAX_BUFFER (then only
-        # the latest ones reach the reservoir).
+        # The task buffer holds every transition of the task unless the task outgrew it (more than
+        # the trainer's MAX_BUFFER steps): then only the latest ones reach the reservoir.
         self.reservoir.offer(*stored_transitions(task.buffer), task=task.index)
 
     def carry_state(self) -> dict[str, Any]:

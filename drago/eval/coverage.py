@@ -35,7 +35,6 @@ from drago.envs.fourrooms import (
 )
 from drago.envs.tasks import get_grid_task
 from drago.train.run import CONFIG_FILE, RunDirError
-from drago.train.trainer import Trainer
 
 __all__ = [
     "GROUPS",
@@ -273,9 +272,8 @@ def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
     if cfg.env.domain != GRID_DOMAIN:
         raise CoverageError(f"{run_dir} is a '{cfg.env.domain}' run; coverage is defined for the "
                             f"'{GRID_DOMAIN}' grid only")
-    # The trainer owns the checkpoint naming; a bare instance answers it without building anything.
-    naming = Trainer(cfg, run_dir, method=None, spec=None, logger=None, device=None, progress=False)
-    found = [RunCheckpoint(stage=index + 1, task=name, path=naming.task_checkpoint(index))
+    # The documented layout of drago.train.checkpoint: checkpoints/task<k>_<name>.pt, k = index + 1.
+    found = [RunCheckpoint(stage=index + 1, task=name, path=run_dir / "checkpoints" / f"task{index + 1}_{name}.pt")
              for index, name in enumerate(cfg.env.tasks)]
     found = [c for c in found if c.path.is_file()]
     if not found:

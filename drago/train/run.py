@@ -86,6 +86,8 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
 def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> Trainer:
     set_threads(cfg.train.threads)
     spec = env_spec(cfg.env.domain)
+    # Methods may build networks of their own (DRAGO's VAE): seed them like everything else.
+    torch.manual_seed(cfg.train.seed)
     method = get_method(cfg.method.name)(cfg, spec, device)
     trainer = Trainer(cfg, run_dir, method, spec, None, device, progress=progress)
     return trainer

@@ -132,7 +132,8 @@ class Trainer:
             self.method.load_carry_state(previous["method"])
         world_optimizer = torch.optim.Adam(world_model.dynamics.parameters(), lr=cfg.agent.lr)
         learner = Agent(world_model, world_optimizer, cfg.agent, spec.discrete)
-        capacity = max(min(cfg.train.steps_per_task, MAX_BUFFER), cfg.env.episode_length)
+        # Whole episodes: a budget that is not a multiple of L must not overwrite the task's first episode.
+        capacity = -(-min(cfg.train.steps_per_task, MAX_BUFFER) // cfg.env.episode_length) * cfg.env.episode_length
         buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, cfg.agent.horizon, cfg.env.episode_length,
                                cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
         task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,

@@ -1,0 +1,229 @@
+"""DRAGO's maths and its method object, against spec §3."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from drago import cli
+from drago.agent.networks import WorldModel
+from drago.continual.generative import VAE, GridCounts, intrinsic_reward, rehearsal_loss, vae_loss
+from drago.envs.fourrooms import observation, traversable_cells
+from drago.train.checkpoint import load_checkpoint
+
+
+def _world_model(seed: int) -> WorldModel:
+    torch.manual_seed(seed)
+    return WorldModel(3, 3, 32, use_crelu=False, squash=True)
+
+
+def _transitions(n: int = 256, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.rand(n, 3, generator=g) * 2 - 1
+    actions = torch.nn.functional.one_hot(torch.randint(0, 3, (n,), generator=g), 3).float()
+    next_obs = torch.rand(n, 3, generator=g) * 2 - 1
+    return obs, actions, next_obs
+
+
+class _Exact(torch.nn.Module):
+    """A stand-in world model that predicts a given next state exactly (or with a chosen error)."""
+
+    def __init__(self, target: torch.Tensor, error: float = 0.0):
+        super().__init__()
+        self.target, self.error = target, error
+
+    def encode(self, obs):
+        return obs
+
+    def forward(self, z, a):
+        return self.target + self.error
+
+
+@pytest.mark.parametrize("variant", ["code", "paper"])
+def test_intrinsic_reward_lies_in_its_range(variant):
+    obs, actions, next_obs = _transitions()
+    for old_seed, cur_seed in [(0, 1), (2, 2), (3, 4)]:
+        r = intrinsic_reward(_world_model(old_seed), _world_model(cur_seed), obs, actions, next_obs,
+                             threshold=9.5, cost_coef=0.5, variant=variant)
+        assert r.reward.shape == (256,)
+        assert torch.all(r.reward > -0.5) and torch.all(r.reward < 1.0)
+        assert torch.allclose(r.reward, r.old_reward - 0.5 * r.cost)
+
+
+def test_intrinsic_reward_rises_where_old_model_is_right_and_current_is_wrong():
+    obs, actions, next_obs = _transitions(64)
+    right, wrong = _Exact(next_obs), _Exact(next_obs, error=0.5)
+    theta = 9.5
+    best = intrinsic_reward(right, wrong, obs, actions, next_obs, theta, 0.5).reward
+    worst = intrinsic_reward(wrong, right, obs, actions, next_obs, theta, 0.5).reward
+    both_right = intrinsic_reward(right, right, obs, actions, next_obs, theta, 0.5).reward
+    both_wrong = intrinsic_reward(wrong, wrong, obs, actions, next_obs, theta, 0.5).reward
+    assert torch.all(best > both_right) and torch.all(best > both_wrong) and torch.all(both_wrong > worst)
+    # Closed forms of the code variant: an exact old model scores -log(1e-10) = 23.03 >> theta -> r_old ~ 1;
+    # an error of 0.5 in every dim scores -log(0.25) = 1.386 -> cost sigmoid(1.386 - 9.5) ~ 3e-4.
+    assert torch.allclose(best, torch.full_like(best, 1 - 0.5 * 1 / (1 + math.exp(9.5 - math.log(4)))), atol=1e-4)
+    assert torch.allclose(worst, torch.full_like(worst, 1 / (1 + math.exp(-4 * (math.log(4) - 9.5))) - 0.5), atol=1e-4)
+
+
+def test_intrinsic_reward_threshold_is_the_midpoint_of_the_old_term():
+    obs, actions, next_obs = _transitions(8)
+    mse = math.exp(-9.5)  # a prediction score exactly at theta
+    old = _Exact(next_obs, error=math.sqrt(mse))
+    r = intrinsic_reward(old, old, obs, actions, next_obs, threshold=9.5, cost_coef=0.0)
+    assert torch.allclose(r.old_reward, torch.full((8,), 0.5), atol=1e-3)
+
+
+def test_vae_loss_closed_form():
+    x = torch.tensor([[1.0, 0.0], [0.0, 2.0]])
+    recon = torch.zeros(2, 2)
+    mu = torch.tensor([[1.0, 0.0], [0.0, 0.0]])
+    log_var = torch.zeros(2, 2)
+    total, rec, kl = vae_loss(recon, x, mu, log_var, recon_coef=1.0, kl_coef=0.5)
+    assert rec.item() == pytest.approx((1 + 4) / 4)
+    # KL per element = -0.5 (1 + 0 - mu^2 - 1) = mu^2 / 2, averaged over batch AND latent dims.
+    assert kl.item() == pytest.approx(0.5 / 4)
+    assert total.item() == pytest.approx(rec.item() + 0.5 * kl.item())
+
+
+def test_rehearsal_pulls_a_perturbed_model_back_to_the_frozen_one_on_generated_inputs():
+    torch.manual_seed(0)
+    old = _world_model(0).requires_grad_(False)
+    current = copy.deepcopy(old).requires_grad_(True)
+    with torch.no_grad():
+        for p in current.dynamics.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    # A generator of (state, action) pairs: a VAE fitted for a few steps on grid data stands in for G_old.
+    vae = VAE(6, 32, 8)
+    cells = traversable_cells()
+    data = torch.tensor(np.array([np.concatenate([observation(c, d), np.eye(3)[a]])
+                                  for c in cells[::7] for d in range(4) for a in range(3)]), dtype=torch.float32)
+    opt = torch.optim.Adam(vae.parameters(), lr=1e-3)
+    for _ in range(200):
+        rec, mu, lv = vae(data)
+        loss = vae_loss(rec, data, mu, lv, 1.0, 0.02)[0]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    probe = vae.sample(512)
+    states, actions = probe[:, :3], probe[:, 3:]
+
+    def gap(target):
+        return rehearsal_loss(current, old, states, actions, target).item()
+
+    before_pre, before_post = gap("pre_squash"), gap("post_squash")
+    optimizer = torch.optim.Adam(current.dynamics.parameters(), lr=1e-3)
+    for _ in range(300):
+        sample = vae.sample(512)
+        loss = rehearsal_loss(current, old, sample[:, :3], sample[:, 3:], "pre_squash")
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert gap("pre_squash") < 0.1 * before_pre
+    assert gap("post_squash") < 0.1 * before_post
+    assert all(not p.requires_grad for p in old.parameters())
+
+
+def test_rehearsal_loss_is_zero_between_identical_models():
+    wm = _world_model(0)
+    obs, actions, _ = _transitions(16)
+    assert rehearsal_loss(wm, copy.deepcopy(wm), obs, actions).item() == 0.0
+
+
+def test_grid_counts_round_exact_observations_to_their_own_cell():
+    counts = GridCounts()
+    cells = [(x, y) for x in range(1, 26) for y in range(1, 26)]
+    obs = torch.tensor(np.array([observation(c, d) for c in cells for d in range(4)]))
+    x, y, d = counts.index(obs)
+    expected = torch.tensor([(c[0], c[1], h) for c in cells for h in range(4)])
+    assert torch.equal(torch.stack((x, y, d), 1), expected)
+    # The official code's truncation would misfile x in {2, 3, 6, 9}: rounding does not.
+    counts.update(torch.tensor(observation((2, 3), 1)))
+    counts.update(torch.tensor(observation((2, 3), 1)))
+    assert counts.table[2, 3, 1] == 2 and counts.table.sum() == 2
+
+
+def test_grid_count_bonus_closed_form():
+    counts = GridCounts()
+    o = torch.tensor(observation((5, 5), 0))
+    assert counts.bonus(o).item() == pytest.approx(1 / math.sqrt(0.99999) - 1 / 99999)
+    for _ in range(3):
+        counts.update(o)
+    assert counts.bonus(o).item() == pytest.approx(1 / math.sqrt(3.99999) - 1 / 99999)
+
+
+@pytest.fixture(scope="module")
+def drago_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("drago") / "run"
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
+                     "train.tensorboard=false"]) == 0
+    return out
+
+
+def test_task_checkpoint_carries_world_model_vae_and_threshold_only(drago_run):
+    ckpt = load_checkpoint(drago_run / "checkpoints" / "task2_room2.pt", kind="task")
+    assert set(ckpt["method"]) == {"vae", "threshold", "tasks_seen"}
+    assert isinstance(ckpt["method"]["threshold"], float) and math.isfinite(ckpt["method"]["threshold"])
+    # No reviewer, optimizer or buffer crosses a task boundary (spec §3.10).
+    assert not any(k.startswith(("reviewer", "optimizer", "buffer")) for k in ckpt)
+
+
+def test_next_task_starts_from_the_saved_world_model_vae_and_threshold(drago_run, monkeypatch):
+    from drago.continual.drago import Drago
+    from drago.config import Config
+    import yaml
+
+    cfg = Config.from_dict(yaml.safe_load((drago_run / "config.yaml").read_text()))
+    ckpt = load_checkpoint(drago_run / "checkpoints" / "task2_room2.pt", kind="task")
+    method = Drago(cfg, __import__("drago.envs", fromlist=["env_spec"]).env_spec("minigrid"), torch.device("cpu"))
+    method.load_carry_state(ckpt["method"])
+    assert method.threshold == ckpt["method"]["threshold"]
+    for key, value in ckpt["method"]["vae"].items():
+        assert torch.equal(method.vae.state_dict()[key], value)
+
+
+def test_drago_logs_reviewer_and_rehearsal_in_later_tasks(drago_run):
+    import csv
+
+    rows = list(csv.DictReader((drago_run / "train.csv").open()))
+    first = [r for r in rows if r["task"] == "room1"]
+    later = [r for r in rows if r["task"] != "room1" and r["reviewer_consistency_loss"]]
+    assert first and later
+    assert all(r["reviewer_episode_reward"] == "" for r in first)
+    for r in later:
+        assert float(r["learner_consistency_loss"]) == 0.0  # only the reviewer trains the world model
+        assert float(r["rehearsal_loss"]) >= 0.0
+        # reviewer episodes count against the task budget (the official code's accounting)
+        assert int(r["step"]) == 2 * int(r["learner_step"])
+
+
+def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
+    from drago.continual import drago as drago_module
+
+    reference = tmp_path / "ref"
+    args = ["train", "smoke", "--method", "drago", "--no-progress", "train.tensorboard=false",
+            "train.steps_per_task=800", "train.checkpoint_freq=200"]
+    assert cli.main([*args, "--out", str(reference)]) == 0
+
+    crashed = tmp_path / "crashed"
+    original = drago_module.Drago.gradient_step
+    calls = {"n": 0}
+
+    def crash_in_task_two(self, task, u):
+        if task.index == 1:
+            calls["n"] += 1
+            if calls["n"] == 25:
+                raise RuntimeError("simulated crash")
+        return original(self, task, u)
+
+    monkeypatch.setattr(drago_module.Drago, "gradient_step", crash_in_task_two)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        cli.main([*args, "--out", str(crashed)])
+    assert (crashed / "checkpoints" / "resume.pt").exists()
+    monkeypatch.setattr(drago_module.Drago, "gradient_step", original)
+    assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
+    for name in ("train.csv", "eval.csv"):
+        assert (crashed / name).read_bytes() == (reference / name).read_bytes(), name

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
-import yaml
 
 from drago.agent.losses import LOG_EPS
 from drago.config import Config
@@ -34,7 +33,7 @@ from drago.envs.fourrooms import (
     traversable_cells,
 )
 from drago.envs.tasks import get_grid_task
-from drago.train.run import CONFIG_FILE, RunDirError
+from drago.train.run import RunDirError, read_run_config
 
 __all__ = [
     "GROUPS",
@@ -242,21 +241,6 @@ def grid_coverage(predictor: Predictor) -> CoverageResult:
     return CoverageResult(correct=correct, score=score, predicted=predicted, rooms=rooms)
 
 
-def _read_run_config(run_dir: Path) -> Config:
-    config_path = run_dir / CONFIG_FILE
-    if not run_dir.is_dir():
-        raise CoverageError(f"run directory {run_dir} does not exist")
-    if not config_path.is_file():
-        raise CoverageError(f"{run_dir} is not a drago run directory (no {CONFIG_FILE})")
-    try:
-        data = yaml.safe_load(config_path.read_text())
-    except yaml.YAMLError as err:
-        raise CoverageError(f"{config_path} is not valid YAML ({str(err).splitlines()[0]})") from None
-    if not isinstance(data, dict):
-        raise CoverageError(f"{config_path} does not hold a drago config")
-    return Config.from_dict(data)
-
-
 def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
     """The run's config and its finished tasks' checkpoints, in task order.
 
@@ -268,7 +252,7 @@ def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
         drago.config.ConfigError: The run's ``config.yaml`` is invalid.
     """
     run_dir = Path(run_dir)
-    cfg = _read_run_config(run_dir)
+    cfg = read_run_config(run_dir)
     if cfg.env.domain != GRID_DOMAIN:
         raise CoverageError(f"{run_dir} is a '{cfg.env.domain}' run; coverage is defined for the "
                             f"'{GRID_DOMAIN}' grid only")

@@ -54,8 +54,8 @@ def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = Tr
     return trainer
 
 
-def resume(run_dir: Path, progress: bool = True) -> Trainer:
-    """Rebuild the trainer of an existing run; it continues where the last checkpoint left off."""
+def read_run_config(run_dir: Path) -> Config:
+    """The resolved config a run directory was started with."""
     config_path = run_dir / CONFIG_FILE
     if not run_dir.exists():
         raise RunDirError(f"run directory {run_dir} does not exist")
@@ -67,7 +67,12 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
         raise RunDirError(f"{config_path} is not valid YAML ({str(err).splitlines()[0]})") from None
     if not isinstance(data, dict):
         raise RunDirError(f"{config_path} does not hold a drago config")
-    cfg = Config.from_dict(data)
+    return Config.from_dict(data)
+
+
+def resume(run_dir: Path, progress: bool = True) -> Trainer:
+    """Rebuild the trainer of an existing run; it continues where the last checkpoint left off."""
+    cfg = read_run_config(run_dir)
     device = resolve_device(cfg.train.device)
     trainer = _build(cfg, run_dir, device, progress)
     # Read every finished task's checkpoint now, so a damaged one fails before any work starts.

@@ -6,6 +6,7 @@ changes only what differs. Adding a method is one file plus one line in ``drago/
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -71,9 +72,17 @@ class ContinualMethod:
     def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
         """One gradient iteration u: by default a learner update that also trains the world model."""
         batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)
-        metrics = task.learner.update(batch, u, train_world_model=True)
+        metrics = task.learner.update(batch, u, train_world_model=True, curiosity_coef=self.curiosity_coef,
+                                      world_model_loss=self.world_model_loss(task))
         task.buffer.update_priorities(batch.indices, metrics.pop("priority"))
         return {f"learner_{k}": v for k, v in metrics.items()}
+
+    #: prediction-error bonus in the learner's TD target (the curiosity baseline)
+    curiosity_coef = 0.0
+
+    def world_model_loss(self, task: TaskState) -> Callable[[], torch.Tensor] | None:
+        """An extra loss on the world model for this gradient step (EWC penalty, replayed old rows)."""
+        return None
 
     # ---- persistence -----------------------------------------------------------------------
     def carry_state(self) -> dict[str, Any]:

@@ -8,9 +8,7 @@ still fits the environment reward, which is what the planner's reward prediction
 
 from __future__ import annotations
 
-import torch
-
-from drago.continual.base import ContinualMethod, TaskState
+from drago.continual.base import ContinualMethod
 
 
 class Curiosity(ContinualMethod):
@@ -19,8 +17,6 @@ class Curiosity(ContinualMethod):
     name = "curiosity"
     description = "continual TD-MPC with a prediction-error bonus c * e_t in the learner's TD target"
 
-    def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
-        batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)
-        metrics = task.learner.update(batch, u, train_world_model=True, curiosity_coef=self.cfg.method.curiosity_coef)
-        task.buffer.update_priorities(batch.indices, metrics.pop("priority"))
-        return {f"learner_{k}": v for k, v in metrics.items()}
+    def __init__(self, cfg, spec, device):
+        super().__init__(cfg, spec, device)
+        self.curiosity_coef = cfg.method.curiosity_coef

@@ -8,7 +8,7 @@ penalty ``ewc_coef / 2 * sum_i F_i (theta_i - theta*_i)^2``.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Protocol
 
 import torch
@@ -163,15 +163,10 @@ class EWC(ContinualMethod):
         assert self.fisher is not None and self.anchor is not None
         return 0.5 * self.cfg.method.ewc_coef * ewc_penalty(world_model, [self.anchor], [self.fisher])
 
-    def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
-        batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)
-        extra = None
-        if self.fisher is not None and self.cfg.method.ewc_coef > 0:
-            def extra() -> torch.Tensor:
-                return self.penalty(task.world_model)
-        metrics = task.learner.update(batch, u, train_world_model=True, world_model_loss=extra)
-        task.buffer.update_priorities(batch.indices, metrics.pop("priority"))
-        return {f"learner_{k}": v for k, v in metrics.items()}
+    def world_model_loss(self, task: TaskState) -> Callable[[], torch.Tensor] | None:
+        if self.fisher is None or self.cfg.method.ewc_coef <= 0:
+            return None
+        return lambda: self.penalty(task.world_model)
 
     def end_task(self, task: TaskState) -> None:
         """Estimate this task's Fisher at the final world model, add it, and move the anchor there."""

@@ -9,6 +9,7 @@ world-model objective mixes those old rows with the task's own sequences.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -201,17 +202,11 @@ class Replay(ContinualMethod):
         rng = np.random.default_rng(np.random.SeedSequence([cfg.train.seed, 0x5E5E7]))
         self.reservoir = ReservoirBuffer(cfg.method.replay_capacity, spec.obs_dim, spec.action_dim, rng, device)
 
-    def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
-        batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)
-        extra = None
-        if len(self.reservoir) and self.weight > 0:
-            old = self.reservoir.sample(self.cfg.agent.batch_size, task.rng)
-
-            def extra() -> torch.Tensor:
-                return self.weight * replay_loss(task.world_model, *old)
-        metrics = task.learner.update(batch, u, train_world_model=True, world_model_loss=extra)
-        task.buffer.update_priorities(batch.indices, metrics.pop("priority"))
-        return {f"learner_{k}": v for k, v in metrics.items()}
+    def world_model_loss(self, task: TaskState) -> Callable[[], torch.Tensor] | None:
+        if not len(self.reservoir) or self.weight <= 0:
+            return None
+        old = self.reservoir.sample(self.cfg.agent.batch_size, task.rng)
+        return lambda: self.weight * replay_loss(task.world_model, *old)
 
     def end_task(self, task: TaskState) -> None:
         # The task buffer holds every transition of the task unless the task outgrew it (more than

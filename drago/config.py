@@ -78,7 +78,11 @@ class AgentConfig:
 class TrainConfig:
     """Budgets, evaluation, checkpoints and the machine."""
 
-    steps_per_task: int = 300_000  # agent steps per task, learner and reviewer together (code's count)
+    steps_per_task: int = 300_000  # agent steps per task, learner and reviewer together (the code's count)
+    # Separate budgets instead: when set, a task ends after this many learner steps (steps_per_task is
+    # then unused) and DRAGO's reviewer collects up to reviewer_steps_per_task (None: as many).
+    learner_steps_per_task: int | None = None
+    reviewer_steps_per_task: int | None = None
     updates_per_episode: int | None = None  # gradient steps after each iteration; None: episode_length
     eval_freq: int = 10_000  # evaluate every this many env steps of a task (and at its start and end)
     eval_episodes: int = 10
@@ -342,6 +346,13 @@ def validate(cfg: Config) -> None:
     for key, value in positive.items():
         if value <= 0:
             raise ConfigError(f"setting '{key}' must be positive, got {value}")
+    for key in ("learner_steps_per_task", "reviewer_steps_per_task"):
+        value = getattr(cfg.train, key)
+        if value is not None and value <= 0:
+            raise ConfigError(f"setting 'train.{key}' must be positive, got {value}")
+    if cfg.train.reviewer_steps_per_task is not None and cfg.train.learner_steps_per_task is None:
+        raise ConfigError("train.reviewer_steps_per_task needs train.learner_steps_per_task (separate budgets); "
+                          "without it both share train.steps_per_task")
     if cfg.train.updates_per_episode is not None and cfg.train.updates_per_episode < 0:
         raise ConfigError(f"setting 'train.updates_per_episode' must be >= 0, got {cfg.train.updates_per_episode}")
     if cfg.train.threads < 0:

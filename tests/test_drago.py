@@ -227,3 +227,28 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv"):
         assert (crashed / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+def test_separate_learner_and_reviewer_budgets(tmp_path):
+    import csv
+
+    out = tmp_path / "run"
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "train.learner_steps_per_task=400",
+                     "train.reviewer_steps_per_task=200"]) == 0
+    rows = list(csv.DictReader((out / "train.csv").open()))
+    last = {r["task"]: r for r in rows}
+    assert int(last["room1"]["learner_step"]) == 400 and int(last["room1"]["step"]) == 400
+    # Task 2: the learner keeps its full budget; the reviewer stops after its own 200 steps.
+    assert int(last["room2"]["learner_step"]) == 400 and int(last["room2"]["step"]) == 600
+    reviewer_rows = [r for r in rows if r["task"] == "room2" and r["reviewer_episode_reward"] != ""]
+    assert len(reviewer_rows) == 2
+
+
+def test_shared_budget_halves_the_learner_steps_once_a_reviewer_runs(drago_run):
+    import csv
+
+    last = {r["task"]: r for r in csv.DictReader((drago_run / "train.csv").open())}
+    assert int(last["room1"]["learner_step"]) == 400
+    for task in ("room2", "room3", "room4"):
+        assert int(last[task]["step"]) == 400 and int(last[task]["learner_step"]) == 200

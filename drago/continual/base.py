@@ -20,6 +20,58 @@ from drago.config import Config
 from drago.envs import EnvSpec
 
 
+MAX_BUFFER = 1_000_000  # transitions, as in the official code
+
+
+def buffer_capacity(steps: int, episode_length: int) -> int:
+    """Room for ``steps`` transitions in whole episodes, so no episode of a task is overwritten."""
+    return -(-min(steps, MAX_BUFFER) // episode_length) * episode_length
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How many agent steps a task may take (spec §3.12, row 14).
+
+    Shared (the official code's accounting, the default): learner and reviewer steps count together
+    against ``steps_per_task``, so once a reviewer runs the learner gets half the steps. Separate: the
+    task ends after ``learner`` learner steps and the reviewer collects up to ``reviewer`` steps.
+    """
+
+    shared: int | None
+    learner: int | None = None
+    reviewer: int | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> Budget:
+        t = cfg.train
+        if t.learner_steps_per_task is None:
+            return cls(shared=t.steps_per_task)
+        reviewer = t.reviewer_steps_per_task if t.reviewer_steps_per_task is not None else t.learner_steps_per_task
+        return cls(shared=None, learner=t.learner_steps_per_task, reviewer=reviewer)
+
+    @property
+    def max_steps(self) -> int:
+        """An upper bound on a task's agent steps (progress bars, global log steps)."""
+        return self.shared if self.shared is not None else self.learner + self.reviewer
+
+    @property
+    def max_learner_steps(self) -> int:
+        return self.shared if self.shared is not None else self.learner
+
+    @property
+    def max_reviewer_steps(self) -> int:
+        # Shared: one reviewer episode per learner episode, so at most half of the task, rounded up.
+        return -(-self.shared // 2) if self.shared is not None else self.reviewer
+
+    def finished(self, task: TaskState) -> bool:
+        if self.shared is not None:
+            return task.step >= self.shared
+        return task.learner_steps >= self.learner
+
+    def reviewer_may_collect(self, task: TaskState) -> bool:
+        return self.shared is not None or task.step - task.learner_steps < self.reviewer
+
+
 @dataclass
 class TaskState:
     """Everything that lives for one task of the sequence (spec §3.10: fresh at every task).
@@ -35,7 +87,8 @@ class TaskState:
     buffer: EpisodeReplay
     rng: np.random.Generator
     env: Any  # the task's env, shared by every episode of the task (as in the official code)
-    step: int = 0  # task-local agent steps, learner and reviewer together (the official code's count)
+    budget: Budget
+    step: int = 0  # task-local agent steps, learner and reviewer together
     learner_steps: int = 0
     episodes: int = 0
     extras: dict[str, Any] = field(default_factory=dict)  # a method's per-task objects

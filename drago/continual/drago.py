@@ -24,7 +24,7 @@ import torch
 
 from drago.agent.agent import Agent
 from drago.agent.buffer import Batch, EpisodeReplay
-from drago.continual.base import ContinualMethod, TaskState
+from drago.continual.base import ContinualMethod, TaskState, buffer_capacity
 from drago.continual.generative import VAE, GridCounts, intrinsic_reward, rehearsal_loss, vae_loss
 
 VAE_GRAD_CLIP = 10.0
@@ -76,7 +76,7 @@ class Drago(ContinualMethod):
         self.reviewer = None
         if previous and self.use_reviewer and not self.single_agent:
             self.reviewer = Agent(task.world_model, task.world_optimizer, cfg.agent, self.spec.discrete, reviewer=True)
-            capacity = task.buffer.capacity
+            capacity = buffer_capacity(task.budget.max_reviewer_steps, cfg.env.episode_length)
             self.reviewer_buffer = EpisodeReplay(capacity, self.spec.obs_dim, self.spec.action_dim, cfg.agent.horizon,
                                                  cfg.env.episode_length, cfg.agent.per_alpha, cfg.agent.per_beta,
                                                  device=self.device)
@@ -85,7 +85,7 @@ class Drago(ContinualMethod):
     # ---- collection ------------------------------------------------------------------------------
     def collect(self, task: TaskState) -> dict[str, float]:
         """One reviewer episode: plan for the intrinsic reward, ignore the env reward (spec §3.9)."""
-        if self.reviewer is None:
+        if self.reviewer is None or not task.budget.reviewer_may_collect(task):
             return {}
         cfg, reviewer, L = self.cfg, self.reviewer, self.cfg.env.episode_length
         step = task.step

@@ -210,7 +210,7 @@ class Replay(ContinualMethod):
 
     def end_task(self, task: TaskState) -> None:
         # The task buffer holds every transition of the task unless the task outgrew it (more than
-        # the trainer's MAX_BUFFER steps): then only the latest ones reach the reservoir.
+        # MAX_BUFFER steps): then only the latest ones reach the reservoir.
         self.reservoir.offer(*stored_transitions(task.buffer), task=task.index)
 
     def carry_state(self) -> dict[str, Any]:

@@ -81,9 +81,9 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
     # TensorBoard must forget the events written after the checkpoint the run continues from.
     if trainer.resume_checkpoint.exists():
         state = load_checkpoint(trainer.resume_checkpoint, kind="resume", domain=cfg.env.domain)
-        purge = trainer.env_steps(state["task_index"] * cfg.train.steps_per_task + state["step"])
+        purge = trainer.global_env_step(index=state["task_index"], step=state["step"])
     else:
-        purge = trainer.env_steps(trainer.completed_tasks() * cfg.train.steps_per_task)
+        purge = trainer.global_env_step(index=trainer.completed_tasks())
     trainer.logger = RunLogger(run_dir, cfg.train.tensorboard, purge_step=purge)
     return trainer
 

@@ -23,13 +23,10 @@ from drago.agent.agent import Agent
 from drago.agent.buffer import EpisodeReplay
 from drago.agent.networks import WorldModel
 from drago.config import Config
-from drago.continual.base import ContinualMethod, TaskState
+from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
 from drago.envs import EnvSpec, make_env, task_optimum
 from drago.train.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from drago.train.logger import RunLogger
-
-MAX_BUFFER = 1_000_000
-
 
 @dataclass
 class Episode:
@@ -98,13 +95,19 @@ class Trainer:
     def env_steps(self, agent_steps: int) -> int:
         return agent_steps * self.cfg.env.action_repeat
 
+    def global_env_step(self, task: TaskState | None = None, index: int = 0, step: int = 0) -> int:
+        """A monotone step across the sequence for TensorBoard: task k starts at k * max task steps."""
+        if task is not None:
+            index, step = task.index, task.step
+        return self.env_steps(index * Budget.from_config(self.cfg).max_steps + step)
+
     # ---- the sequence ----------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
         """Train every task not yet finished, resuming a task in progress; returns the summary."""
         cfg = self.cfg
         start = self.completed_tasks()
-        budget = cfg.train.steps_per_task * len(cfg.env.tasks)
-        bar = tqdm(total=budget, initial=start * cfg.train.steps_per_task, unit="step", dynamic_ncols=True,
+        per_task = Budget.from_config(cfg).max_steps
+        bar = tqdm(total=per_task * len(cfg.env.tasks), initial=start * per_task, unit="step", dynamic_ncols=True,
                    disable=not self.progress, desc="drago")
         try:
             for index in range(start, len(cfg.env.tasks)):
@@ -132,12 +135,12 @@ class Trainer:
             self.method.load_carry_state(previous["method"])
         world_optimizer = torch.optim.Adam(world_model.dynamics.parameters(), lr=cfg.agent.lr)
         learner = Agent(world_model, world_optimizer, cfg.agent, spec.discrete)
-        # Whole episodes: a budget that is not a multiple of L must not overwrite the task's first episode.
-        capacity = -(-min(cfg.train.steps_per_task, MAX_BUFFER) // cfg.env.episode_length) * cfg.env.episode_length
+        budget = Budget.from_config(cfg)
+        capacity = buffer_capacity(budget.max_learner_steps, cfg.env.episode_length)
         buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, cfg.agent.horizon, cfg.env.episode_length,
                                cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
         task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,
-                         learner=learner, buffer=buffer, rng=rng, env=env)
+                         learner=learner, buffer=buffer, rng=rng, env=env, budget=budget)
         self.method.begin_task(task)
 
         elapsed = 0.0
@@ -156,10 +159,9 @@ class Trainer:
             last_eval = self.evaluate(task)
         started = time.perf_counter() - elapsed
 
-        budget = cfg.train.steps_per_task
         seed_steps = cfg.agent.seed_steps
         L = cfg.env.episode_length
-        while task.step < budget:
+        while not budget.finished(task):
             t0 = time.perf_counter()
             step = task.step
             explore_randomly = step < seed_steps or len(buffer) < cfg.agent.batch_size
@@ -189,9 +191,9 @@ class Trainer:
             t2 = time.perf_counter()
 
             env_step = self.env_steps(task.step)
-            global_step = self.env_steps(index * budget + task.step)
+            global_step = self.global_env_step(task)
             self.logger.log("train", row, global_step)
-            if env_step // cfg.train.eval_freq > last_eval_env // cfg.train.eval_freq or task.step >= budget:
+            if env_step // cfg.train.eval_freq > last_eval_env // cfg.train.eval_freq or budget.finished(task):
                 last_eval = self.evaluate(task)
                 last_eval_env = env_step
             t3 = time.perf_counter()
@@ -201,7 +203,7 @@ class Trainer:
                                        "elapsed_s": round(time.perf_counter() - started, 2)}, global_step)
             bar.update(task.step - step)
             bar.set_postfix(task=name, ret=f"{episode.ret:.1f}", eval=f"{last_eval.get('episode_reward', 0):.1f}")
-            if task.step < budget and env_step // cfg.train.checkpoint_freq > last_ckpt_env // cfg.train.checkpoint_freq:
+            if not budget.finished(task) and env_step // cfg.train.checkpoint_freq > last_ckpt_env // cfg.train.checkpoint_freq:
                 last_ckpt_env = env_step
                 self._save_resume(task, env, time.perf_counter() - started, last_eval_env, last_ckpt_env, last_eval)
 
@@ -241,7 +243,7 @@ class Trainer:
             result["fraction_of_optimal"] = result["episode_reward"] / optimum
         row = {"task": task.name, "task_index": task.index, "step": task.step, "learner_step": task.learner_steps,
                "env_step": env_step, **result}
-        self.logger.log("eval", row, self.env_steps(task.index * cfg.train.steps_per_task + task.step))
+        self.logger.log("eval", row, self.global_env_step(task))
         self.logger.print(f"[{task.name}] env_step {env_step:>7d}  eval return {result['episode_reward']:7.1f}"
                           + (f"  ({result['fraction_of_optimal']:.0%} of optimal {optimum:.1f})" if optimum else ""))
         return result

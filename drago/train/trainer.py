@@ -118,7 +118,13 @@ class Trainer:
         self.logger.print(f"done: {self.run_dir} ({summary['wall_time_s']:.0f} s)")
         return summary
 
-    def train_task(self, index: int, bar: tqdm) -> None:
+    def build_task(self, index: int) -> tuple[TaskState, dict[str, Any] | None]:
+        """Everything task ``index`` starts with (spec §3.10), and the previous task's checkpoint.
+
+        The world model comes from the previous task's checkpoint unless the method wants a fresh one;
+        heads, optimizers, buffer and step counter are always new. Seeds depend only on (run seed,
+        task), so a task rebuilt after a crash starts exactly as it did the first time.
+        """
         cfg, spec, device = self.cfg, self.spec, self.device
         name = cfg.env.tasks[index]
         torch.manual_seed(task_seed(cfg.train.seed, index, 0))
@@ -127,6 +133,7 @@ class Trainer:
         env.reset(seed=task_seed(cfg.train.seed, index, 2))
 
         world_model = build_world_model(cfg, spec, device)
+        previous = None
         if index > 0:
             previous = load_checkpoint(self.task_checkpoint(index - 1), kind="task", domain=cfg.env.domain,
                                        map_location=device)
@@ -142,7 +149,12 @@ class Trainer:
         task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,
                          learner=learner, buffer=buffer, rng=rng, env=env, budget=budget)
         self.method.begin_task(task)
+        return task, previous
 
+    def train_task(self, index: int, bar: tqdm) -> None:
+        cfg = self.cfg
+        task, previous = self.build_task(index)
+        name, env, buffer, learner, rng, budget = task.name, task.env, task.buffer, task.learner, task.rng, task.budget
         elapsed = 0.0
         last_eval_env = last_ckpt_env = 0
         last_eval: dict[str, float] = {}
@@ -152,10 +164,8 @@ class Trainer:
             bar.update(task.step)
             self.logger.print(f"[{name}] resumed at step {task.step} from {self.resume_checkpoint.name}")
         else:
-            if index == 0:
-                self.logger.restore({k: 0 for k in self.logger.positions()})
-            else:
-                self.logger.restore(previous["log_positions"])
+            # Drop whatever a crashed attempt at this task had logged.
+            self.logger.restore(previous["log_positions"] if previous else {k: 0 for k in self.logger.positions()})
             last_eval = self.evaluate(task)
         started = time.perf_counter() - elapsed
 
@@ -211,7 +221,7 @@ class Trainer:
         wall = time.perf_counter() - started
         save_checkpoint(self.task_checkpoint(index), {
             "task_index": index, "task": name, "config": cfg.to_dict(),
-            "world_model": world_model.state_dict(),
+            "world_model": task.world_model.state_dict(),
             "method": self.method.carry_state(),
             # The learner's heads are kept for pre-rollouts and inspection; chaining never reads them.
             "learner": learner.heads.state_dict(),

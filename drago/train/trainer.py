@@ -108,7 +108,7 @@ class Trainer:
         start = self.completed_tasks()
         per_task = Budget.from_config(cfg).max_steps
         bar = tqdm(total=per_task * len(cfg.env.tasks), initial=start * per_task, unit="step", dynamic_ncols=True,
-                   disable=not self.progress, desc="drago")
+                   disable=None if self.progress else True, desc="drago")  # None: hide when not a terminal
         try:
             for index in range(start, len(cfg.env.tasks)):
                 self.train_task(index, bar)

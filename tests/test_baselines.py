@@ -23,7 +23,7 @@ from drago.agent.losses import model_losses, prediction_error
 from drago.agent.networks import TaskHeads, WorldModel
 from drago.config import load_config
 from drago.continual import METHODS
-from drago.continual.base import TaskState
+from drago.continual.base import Budget, TaskState
 from drago.continual.curiosity import Curiosity
 from drago.continual.ewc import EWC, consistency_loss, ewc_penalty, fisher_diagonal, trainable_parameters
 from drago.continual.replay import Replay, ReservoirBuffer, replay_loss, replay_weight, stored_transitions
@@ -328,7 +328,7 @@ def make_task(cfg, index: int = 0, seed: int = 0) -> TaskState:
         buffer.add_episode(rng.uniform(-1, 1, (L + 1, spec.obs_dim)), np.eye(3)[rng.integers(0, 3, L)],
                            rng.uniform(0, 1, L))
     return TaskState(index=index, name=TASKS[index], world_model=model, world_optimizer=optimizer, learner=learner,
-                     buffer=buffer, rng=rng, env=None)
+                     buffer=buffer, rng=rng, env=None, budget=Budget.from_config(cfg))
 
 
 def record_update(task: TaskState, monkeypatch) -> list[dict]:

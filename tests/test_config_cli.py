@@ -28,7 +28,7 @@ def test_load_smoke_preset_layers_on_its_bases():
     assert (cfg.agent.mlp_dim, cfg.agent.horizon, cfg.agent.batch_size) == (32, 3, 32)
     assert (cfg.train.steps_per_task, cfg.train.checkpoint_freq, cfg.train.threads) == (400, 200, 1)
     # Inherited from minigrid-cpu (not overridden by smoke) and from minigrid.
-    assert cfg.agent.update_freq == 2
+    assert cfg.agent.elite_selection == "argmax"
     assert cfg.env.tasks == ("room1", "room2", "room3", "room4")
     assert cfg.env.episode_length == 100
     # Untouched defaults (spec §2.6).

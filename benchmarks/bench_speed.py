@@ -40,19 +40,29 @@ def matmul_gflops(n: int = 1024, repeats: int = 20) -> float:
     return 2 * n**3 / statistics.median(times) / 1e9
 
 
+def _sync() -> None:
+    """Wait for queued GPU work, so a timing covers the kernels and not only their launch."""
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
 def timed(fn, repeats: int) -> float:
     """Median seconds of ``fn`` over ``repeats`` calls, after one warm-up call."""
     fn()
     samples = []
     for _ in range(repeats):
+        _sync()
         t0 = time.perf_counter()
         fn()
+        _sync()
         samples.append(time.perf_counter() - t0)
     return statistics.median(samples)
 
 
-def bench_preset(name: str, repeats: int, full_iteration: bool) -> dict:
+def bench_preset(name: str, repeats: int, full_iteration: bool, device_name: str | None = None) -> dict:
     cfg = load_config(name)
+    if device_name is not None:
+        cfg.train.device = device_name
     spec = env_spec(cfg.env.domain)
     device = torch.device(cfg.train.device)
     torch.manual_seed(0)
@@ -104,6 +114,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--full-iteration", action="store_true", help="time a real iteration on every preset")
+    parser.add_argument("--device", default=None, help="cpu or cuda (default: each preset's)")
     parser.add_argument("--json", default=None, help="also write the results to this file")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -111,7 +122,7 @@ def main() -> None:
     gflops = matmul_gflops()
     print(f"torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}")
     print(f"float32 matmul (1024^3): {gflops:.1f} GFLOP/s")
-    rows = [bench_preset(p, args.repeats, args.full_iteration) for p in args.presets]
+    rows = [bench_preset(p, args.repeats, args.full_iteration, args.device) for p in args.presets]
     header = f"{'preset':<14}{'width':>6}{'H':>4}{'batch':>6}{'ms/update':>11}{'ms/action':>11}{'env steps/s':>13}  (iteration)"
     print(header)
     for r in rows:

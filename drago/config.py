@@ -12,6 +12,7 @@ paper and code disagree (spec §3.12); each such switch says so in its field com
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from dataclasses import dataclass, field, fields
@@ -279,6 +280,10 @@ def _parse_scalar(raw: str) -> Any:
         return raw
 
 
+# YAML 1.1 reads an exponent without a dot ("3e-4", "1E5") as a string; that is how people write rates.
+_EXPONENT_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
     kind = _resolve_type(annotation)
     origin = typing.get_origin(kind)
@@ -305,6 +310,8 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
             raise ConfigError(f"setting '{key}' expects an integer, got {value!r}")
         return int(value)
     if kind is float:
+        if isinstance(value, str) and _EXPONENT_NUMBER.fullmatch(value.strip()):
+            value = float(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"setting '{key}' expects a number, got {value!r}")
         return float(value)

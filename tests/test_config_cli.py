@@ -76,6 +76,12 @@ def test_numeric_tuple_override_from_plain_string(raw):
     assert cfg.agent.random_action_probs == (0.1, 0.1, 0.8)
 
 
+@pytest.mark.parametrize("raw, expected", [("3e-4", 3e-4), ("1E-3", 1e-3), ("+2.5e+1", 25.0), (".5e1", 5.0)])
+def test_exponent_without_dot_is_a_number(raw, expected):
+    # YAML 1.1 alone reads "3e-4" as a string.
+    assert load_config("smoke", [f"agent.lr={raw}"]).agent.lr == pytest.approx(expected)
+
+
 def test_string_tuple_override_from_plain_string():
     assert load_config("smoke", ["env.tasks=room2,room1"]).env.tasks == ("room2", "room1")
     assert load_config("smoke", ["env.tasks=(room3, room4)"]).env.tasks == ("room3", "room4")

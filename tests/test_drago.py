@@ -11,7 +11,14 @@ import torch
 
 from drago import cli
 from drago.agent.networks import WorldModel
-from drago.continual.generative import VAE, GridCounts, intrinsic_reward, rehearsal_loss, vae_loss
+from drago.continual.generative import (
+    VAE,
+    ContinuousCounts,
+    GridCounts,
+    intrinsic_reward,
+    rehearsal_loss,
+    vae_loss,
+)
 from drago.envs.fourrooms import observation, traversable_cells
 from drago.train.checkpoint import load_checkpoint
 
@@ -252,3 +259,45 @@ def test_shared_budget_halves_the_learner_steps_once_a_reviewer_runs(drago_run):
     assert int(last["room1"]["learner_step"]) == 400
     for task in ("room2", "room3", "room4"):
         assert int(last[task]["step"]) == 400 and int(last[task]["learner_step"]) == 200
+
+
+def test_continuous_count_bonus_is_bounded_where_the_official_one_explodes():
+    torch.manual_seed(0)
+    counts = ContinuousCounts(obs_dim=5)
+    visited = torch.full((1, 5), 0.5)
+    for _ in range(20):
+        counts.update(visited)
+    elsewhere = 2 * torch.randn(1000, 5)
+    n = counts.count(elsewhere)
+    # Where the last step lowered p the count is 0: the official 1/sqrt(N + 1e-8) would pay 10^4 there.
+    assert (n == 0).any()
+    bonus = counts.bonus(elsewhere)
+    assert torch.all(bonus > 0) and torch.all(bonus <= 1)
+    assert torch.allclose(bonus[n == 0], torch.ones(()))
+
+
+def test_continuous_count_bonus_falls_as_a_state_is_revisited():
+    torch.manual_seed(0)
+    counts = ContinuousCounts(obs_dim=5)
+    visited = torch.full((1, 5), 0.5)
+    counts.update(visited)
+    counts.update(visited)
+    early = counts.bonus(visited).item()
+    for _ in range(300):
+        counts.update(visited)
+    assert counts.bonus(visited).item() < 0.75 * early
+
+
+def test_continuous_counts_round_trip():
+    torch.manual_seed(0)
+    counts, other = ContinuousCounts(obs_dim=4), ContinuousCounts(obs_dim=4)
+    for _ in range(5):
+        counts.update(torch.randn(1, 4))
+    other.load_state_dict(copy.deepcopy(counts.state_dict()))
+    probe = torch.randn(64, 4)
+    assert torch.equal(counts.bonus(probe), other.bonus(probe))
+    torch.manual_seed(1)
+    counts.update(probe[:1])
+    torch.manual_seed(1)
+    other.update(probe[:1])
+    assert torch.equal(counts.bonus(probe), other.bonus(probe))

@@ -25,7 +25,14 @@ import torch
 from drago.agent.agent import Agent
 from drago.agent.buffer import Batch, EpisodeReplay
 from drago.continual.base import ContinualMethod, TaskState, buffer_capacity
-from drago.continual.generative import VAE, GridCounts, intrinsic_reward, rehearsal_loss, vae_loss
+from drago.continual.generative import (
+    VAE,
+    ContinuousCounts,
+    GridCounts,
+    intrinsic_reward,
+    rehearsal_loss,
+    vae_loss,
+)
 
 VAE_GRAD_CLIP = 10.0
 
@@ -80,7 +87,10 @@ class Drago(ContinualMethod):
             self.reviewer_buffer = EpisodeReplay(capacity, self.spec.obs_dim, self.spec.action_dim, cfg.agent.horizon,
                                                  cfg.env.episode_length, cfg.agent.per_alpha, cfg.agent.per_beta,
                                                  device=self.device)
-            self.counts = GridCounts(self.device) if self.spec.discrete else None
+            self.counts = None
+            if cfg.method.pseudo_counts:
+                self.counts = (GridCounts(self.device) if self.spec.discrete
+                               else ContinuousCounts(self.spec.obs_dim, self.device))
 
     # ---- collection ------------------------------------------------------------------------------
     def collect(self, task: TaskState) -> dict[str, float]:
@@ -90,7 +100,7 @@ class Drago(ContinualMethod):
         cfg, reviewer, L = self.cfg, self.reviewer, self.cfg.env.episode_length
         step = task.step
         explore_randomly = step < cfg.agent.seed_steps or len(self.reviewer_buffer) < cfg.agent.batch_size
-        bonus = self.counts.bonus if (self.counts is not None and cfg.method.pseudo_counts) else None
+        bonus = self.counts.bonus if self.counts is not None else None
         obs, _ = task.env.reset()
         observations, actions = [obs], []
         if self.counts is not None:

@@ -3,11 +3,13 @@
 * :class:`VAE` over (latent observation, action) and its loss;
 * :func:`rehearsal_loss`: distillation of the frozen previous world model on generated pairs;
 * :func:`intrinsic_reward`: the reviewer's reward, in the official code's form or the paper's;
-* :class:`GridCounts`: the count bonus of reviewer planning on the grid.
+* :class:`GridCounts` and :class:`ContinuousCounts`: the count bonus of reviewer planning on the grid
+  and on continuous states.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -135,3 +137,57 @@ class GridCounts:
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         self.table.copy_(state["table"])
+
+
+class ContinuousCounts:
+    """Classifier pseudo-counts over continuous states for reviewer planning (spec §3.8, DMC), bounded.
+
+    As in the official code's ``ContPseudoCounts``: a one-hidden-layer classifier learns, one Adam step
+    per visited state, to tell visited states (label 1) from N(0, I) samples (label 0), and the state's
+    pseudo-count comes from the change in its probability across that step,
+    N = max(0, (1 - p_prev) / (p - p_prev + 1e-8)), both probabilities clipped to [1e-6, 1 - 1e-6].
+
+    The official bonus 1/sqrt(N + 1e-8) reaches 10^4 wherever the last step lowered p (N = 0), which
+    swamps every reward in planning. Here the bonus is 1/sqrt(N + 1), always in (0, 1] like the grid's:
+    1 where the step lowered p, near 0 where it left p unchanged (a huge pseudo-count), and in between
+    where it raised p, less the more often the state has been visited.
+    """
+
+    HIDDEN = 128
+    LR = 1e-3
+    CLIP = 1e-6
+
+    def __init__(self, obs_dim: int, device: torch.device | str = "cpu"):
+        self.classifier = nn.Sequential(nn.Linear(obs_dim, self.HIDDEN), nn.ReLU(), nn.Linear(self.HIDDEN, 1)).to(device)
+        self.previous = copy.deepcopy(self.classifier).requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.LR)
+
+    def update(self, obs: torch.Tensor) -> None:
+        """One classifier step on one visited state (or a batch of them) against as many N(0, I) draws."""
+        visited = obs.reshape(-1, obs.shape[-1])
+        self.previous.load_state_dict(self.classifier.state_dict())
+        inputs = torch.cat((visited, torch.randn_like(visited)))
+        labels = torch.cat((torch.ones(len(visited), 1, device=obs.device), torch.zeros(len(visited), 1, device=obs.device)))
+        loss = nn.functional.binary_cross_entropy_with_logits(self.classifier(inputs), labels)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+
+    @torch.no_grad()
+    def count(self, obs: torch.Tensor) -> torch.Tensor:
+        p = torch.sigmoid(self.classifier(obs)).squeeze(-1).clamp(self.CLIP, 1 - self.CLIP)
+        p_prev = torch.sigmoid(self.previous(obs)).squeeze(-1).clamp(self.CLIP, 1 - self.CLIP)
+        return ((1 - p_prev) / (p - p_prev + 1e-8)).clamp(min=0)
+
+    @torch.no_grad()
+    def bonus(self, obs: torch.Tensor) -> torch.Tensor:
+        return 1.0 / torch.sqrt(self.count(obs) + 1.0)
+
+    def state_dict(self) -> dict:
+        return {"classifier": self.classifier.state_dict(), "previous": self.previous.state_dict(),
+                "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.classifier.load_state_dict(state["classifier"])
+        self.previous.load_state_dict(state["previous"])
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -53,6 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     coverage.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     coverage.add_argument("--out", type=Path, default=None, metavar="CSV",
                           help="also write every run's rows into this one CSV")
+    _add_transfer_parser(sub)
+    _add_report_parser(sub)
     return parser
 
 
@@ -131,6 +133,85 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"train": _cmd_train, "resume": _cmd_resume, "list": _cmd_list, "eval": _cmd_eval}
+
+
+# ---- drago transfer ---------------------------------------------------------------------------------
+def _add_transfer_parser(sub) -> None:
+    transfer = sub.add_parser(
+        "transfer", help="learn a test task from the world model a run saved after stage K",
+        usage="drago transfer RUN_DIR (--task T --after K | --paper-cases) [--episodes N] [--learner-only] "
+              "[--out DIR] [--force] [--no-progress]",
+        description="Trains TASK for N learner episodes starting from the world model (and DRAGO's VAE and "
+                    "threshold) saved after stage K of RUN_DIR, with fresh heads, evaluating after every episode. "
+                    "Writes RUN_DIR/transfer/TASK-afterK; continue an interrupted one with `drago resume DIR`.")
+    transfer.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    transfer.add_argument("--task", default=None, help="task to learn (a test task, or a training task to relearn)")
+    transfer.add_argument("--after", type=int, default=None, metavar="K",
+                          help="use the world model saved after the K-th task of the run (1-based)")
+    transfer.add_argument("--paper-cases", action="store_true",
+                          help="the paper's four grid cases one after the other (room1to2 after 2, room1to3 after 3 "
+                               "and 4, room3to4 after 4); finished ones are skipped, unfinished ones resumed")
+    transfer.add_argument("--episodes", type=int, default=20, metavar="N", help="learner episodes (default 20)")
+    transfer.add_argument("--few-shot-episodes", type=int, default=None, metavar="N",
+                          help="read the few-shot score after N learner episodes (default 20, or --episodes if fewer)")
+    transfer.add_argument("--eval-every", type=int, default=1, metavar="N",
+                          help="evaluate after every N learner episodes (default 1)")
+    transfer.add_argument("--reward", choices=("dense", "sparse"), default=None,
+                          help="reward type (default: the task's own; test tasks sparse, training tasks dense)")
+    transfer.add_argument("--learner-only", action="store_true",
+                          help="turn the method's extras off (DRAGO: no reviewer, rehearsal or VAE updates)")
+    transfer.add_argument("--out", type=Path, default=None,
+                          help="transfer directory (with --paper-cases: the folder of the cases); "
+                               "default RUN_DIR/transfer/TASK-afterK")
+    transfer.add_argument("--force", action="store_true", help="overwrite an existing transfer directory")
+    transfer.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+
+
+def _cmd_transfer(args: argparse.Namespace) -> int:
+    from drago.train.transfer import new_transfer, run_paper_cases, run_transfer
+
+    if args.paper_cases and (args.task is not None or args.after is not None):
+        raise UsageError("--paper-cases chooses the tasks and stages itself; drop --task and --after")
+    if not args.paper_cases and (args.task is None or args.after is None):
+        raise UsageError("name the task and the stage, --task T --after K, or pass --paper-cases")
+    options = {"episodes": args.episodes, "learner_only": args.learner_only,
+               "few_shot_episodes": args.few_shot_episodes, "eval_every": args.eval_every,
+               "dense_reward": None if args.reward is None else args.reward == "dense"}
+    if args.paper_cases:
+        run_paper_cases(args.run_dir, out=args.out, force=args.force, progress=not args.no_progress, **options)
+        return 0
+    trainer = new_transfer(args.run_dir, args.task, args.after, out=args.out, force=args.force,
+                           progress=not args.no_progress, **options)
+    trainer.logger.print(f"drago transfer {args.run_dir} --task {args.task} --after {args.after} -> {trainer.run_dir}")
+    run_transfer(trainer)
+    return 0
+
+
+COMMANDS["transfer"] = _cmd_transfer
+
+
+# ---- drago report -----------------------------------------------------------------------------------
+def _add_report_parser(sub) -> None:
+    report = sub.add_parser(
+        "report", help="one HTML page (and Markdown) with tables, curves and heatmaps of a set of runs",
+        usage="drago report RUN_DIR [RUN_DIR ...] [--out DIR]",
+        description="Groups the runs by method and writes DIR/report.html (self-contained) and DIR/report.md "
+                    "with its figures. A folder that is not a run stands for the run directories below it. "
+                    "Nothing is written into the runs.")
+    report.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
+    report.add_argument("--out", type=Path, default=Path("reports"), metavar="DIR",
+                        help="output folder (default: reports)")
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from drago.eval.report import build_report
+
+    for path in build_report(args.run_dirs, args.out):
+        print(f"wrote {path}")
+    return 0
+
+
+COMMANDS["report"] = _cmd_report
 
 
 def main(argv: list[str] | None = None) -> int:

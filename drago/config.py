@@ -12,6 +12,7 @@ paper and code disagree (spec §3.12); each such switch says so in its field com
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import re
 import types
 import typing
@@ -30,11 +31,11 @@ class ConfigError(ValueError):
 class EnvConfig:
     """Which world and which sequence of tasks."""
 
-    domain: str = "minigrid"  # minigrid (cheetah / walker come with the DMC issue)
+    domain: str = "minigrid"  # minigrid, cheetah or walker (DeepMind Control; needs the dmc extra)
     tasks: tuple[str, ...] = ("room1", "room2", "room3", "room4")  # the continual sequence, in order
-    dense_reward: bool | None = None  # None: each task's own default (training dense, test tasks sparse)
+    dense_reward: bool | None = None  # grid only; None: each task's own default (training dense, test tasks sparse)
     episode_length: int = 100  # agent steps per episode
-    action_repeat: int = 1
+    action_repeat: int = 1  # simulator control steps per agent step, rewards summed (grid 1, cheetah 4, walker 2)
 
 
 @dataclass
@@ -86,6 +87,8 @@ class TrainConfig:
     reviewer_steps_per_task: int | None = None
     updates_per_episode: int | None = None  # gradient steps after each iteration; None: episode_length
     eval_freq: int = 10_000  # evaluate every this many env steps of a task (and at its start and end)
+    # Evaluate every this many learner episodes instead (eval_freq is then unused); transfer runs use it.
+    eval_every_episodes: int | None = None
     eval_episodes: int = 10
     checkpoint_freq: int = 50_000  # periodic resumable checkpoint every this many env steps
     seed: int = 1
@@ -128,6 +131,24 @@ class MethodConfig:
 
 
 @dataclass
+class TransferConfig:
+    """A test task learned from another run's world model (spec §4.2); see `drago transfer`.
+
+    Unset (the default) in a continual run. `drago transfer` writes these settings into the transfer
+    run's config, so `drago resume` continues a transfer like any other run.
+    """
+
+    # Task checkpoint (`checkpoints/task<K>_<name>.pt` of another run) whose world model and method state
+    # (DRAGO: VAE, threshold) the first task starts from; heads are fresh. Relative to this run's directory.
+    checkpoint: str | None = None
+    after: int | None = None  # the stage K that checkpoint ends (1-based), for summaries and reports
+    # True: the test task is learned by the plain learner, without the method's extras (DRAGO's reviewer,
+    # rehearsal and VAE updates; EWC's penalty; ...). False: they keep running, as in the official code.
+    learner_only: bool = False
+    few_shot_episodes: int = 20  # summary.json reads the few-shot score after this many learner episodes
+
+
+@dataclass
 class Config:
     """Everything one run needs; `preset` records where the values came from."""
 
@@ -136,6 +157,7 @@ class Config:
     agent: AgentConfig = field(default_factory=AgentConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     method: MethodConfig = field(default_factory=MethodConfig)
+    transfer: TransferConfig = field(default_factory=TransferConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return _to_plain(dataclasses.asdict(self))
@@ -153,8 +175,8 @@ class Config:
         return self.train.updates_per_episode or self.env.episode_length
 
 
-SECTIONS = ("env", "agent", "train", "method")
-DOMAINS = ("minigrid",)
+SECTIONS = ("env", "agent", "train", "method", "transfer")
+DOMAINS = ("minigrid", "cheetah", "walker")
 ELITE_SELECTIONS = ("sample", "argmax")
 
 
@@ -332,6 +354,13 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"unknown method '{cfg.method.name}'; valid methods: {', '.join(methods)}")
     if cfg.env.domain not in DOMAINS:
         raise ConfigError(f"unknown domain '{cfg.env.domain}'; valid domains: {', '.join(DOMAINS)}")
+    if cfg.env.domain == "minigrid" and cfg.env.action_repeat != 1:
+        raise ConfigError(f"setting 'env.action_repeat' must be 1 for the grid, got {cfg.env.action_repeat}")
+    if cfg.env.domain != "minigrid" and cfg.env.dense_reward is not None:
+        raise ConfigError(f"setting 'env.dense_reward' applies to the grid only; leave it unset for {cfg.env.domain}")
+    if cfg.env.domain != "minigrid" and importlib.util.find_spec("dm_control") is None:
+        raise ConfigError(f"domain {cfg.env.domain} needs dm_control, which is not installed: "
+                          "pip install -e '.[dmc]' (scripts/setup.sh installs it)")
     if not cfg.env.tasks:
         raise ConfigError("env.tasks is empty; name at least one task")
     valid_tasks = available_tasks(cfg.env.domain)
@@ -353,7 +382,7 @@ def validate(cfg: Config) -> None:
     for key, value in positive.items():
         if value <= 0:
             raise ConfigError(f"setting '{key}' must be positive, got {value}")
-    for key in ("learner_steps_per_task", "reviewer_steps_per_task"):
+    for key in ("learner_steps_per_task", "reviewer_steps_per_task", "eval_every_episodes"):
         value = getattr(cfg.train, key)
         if value is not None and value <= 0:
             raise ConfigError(f"setting 'train.{key}' must be positive, got {value}")
@@ -401,6 +430,10 @@ def validate(cfg: Config) -> None:
     if not 0.0 <= m.replay_fraction < 1.0:
         # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
         raise ConfigError(f"setting 'method.replay_fraction' must lie in [0, 1), got {m.replay_fraction}")
+    if cfg.transfer.after is not None and cfg.transfer.after <= 0:
+        raise ConfigError(f"setting 'transfer.after' must be positive, got {cfg.transfer.after}")
+    if cfg.transfer.few_shot_episodes <= 0:
+        raise ConfigError(f"setting 'transfer.few_shot_episodes' must be positive, got {cfg.transfer.few_shot_episodes}")
     device = cfg.train.device
     if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
         raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")

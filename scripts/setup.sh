@@ -13,11 +13,45 @@ if [ ! -x .venv/bin/python ]; then
     "$PYTHON" -m venv .venv
 fi
 
-# constraints.txt pins torch to the CPU build for this set-up path; the package itself accepts any
-# torch >= 2.1, so GPU users can install their own build first.
+# constraints.txt pins torch to the CPU build for this set-up path (the package itself accepts any
+# torch >= 2.1, so GPU users can install their own build first) and dm-control / mujoco to a pair that
+# works. The dmc extra brings DeepMind Control (cheetah, walker), which the test suite covers.
 stamp=.venv/.drago-install-stamp
 want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[test]'
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dmc,test]'
     echo "$want" > "$stamp"
+fi
+
+# Debian packages some features need: install them where they are missing and apt-get can (root or
+# password-less sudo); elsewhere only that feature is unavailable, never training, and its test is
+# skipped with the reason. The cached package lists are tried first: an apt-get update costs time.
+apt_install() {
+    command -v apt-get >/dev/null 2>&1 || return 1
+    local sudo=()
+    if [ "$(id -u)" != 0 ]; then
+        sudo -n true 2>/dev/null || return 1
+        sudo=(sudo -n)
+    fi
+    local apt=("${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get -y -qq --no-install-recommends)
+    echo "setup: installing $* (Debian packages)"
+    "${apt[@]}" install "$@" >/dev/null 2>&1 && return 0
+    "${sudo[@]}" apt-get update -qq >/dev/null 2>&1 && "${apt[@]}" install "$@" >/dev/null 2>&1
+}
+
+# Headless rendering of cheetah / walker episodes (GIF) uses EGL with Mesa's software driver (MUJOCO_GL=egl).
+have_egl() {
+    local libs
+    libs=$({ command -v ldconfig >/dev/null && ldconfig -p || /sbin/ldconfig -p; } 2>/dev/null || true)
+    [[ "$libs" == *libEGL_mesa.so.0* ]]
+}
+if [ "$(uname -s)" = Linux ] && ! have_egl; then
+    apt_install libegl1 libegl-mesa0 libgl1-mesa-dri || true
+    have_egl || echo "setup: could not install EGL (needs apt-get and root or password-less sudo); videos of cheetah / walker cannot be rendered headless"
+fi
+
+# The report's browser test opens a generated page in a real headless Chromium, from Debian's package.
+if ! command -v chromium >/dev/null 2>&1; then
+    apt_install chromium || true
+    command -v chromium >/dev/null 2>&1 || echo "setup: could not install chromium (needs apt-get and root or password-less sudo); the report's browser test will be skipped"
 fi

@@ -6,7 +6,7 @@ from drago.continual.base import ContinualMethod, TaskState
 from drago.continual.curiosity import Curiosity
 from drago.continual.drago import Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal
 from drago.continual.ewc import EWC
-from drago.continual.naive import Continual, Scratch
+from drago.continual.naive import Continual, LearnerOnly, Scratch
 from drago.continual.replay import Replay
 
 METHODS: dict[str, type[ContinualMethod]] = {
@@ -33,4 +33,13 @@ def get_method(name: str) -> type[ContinualMethod]:
     return METHODS[name]
 
 
-__all__ = ["METHODS", "ContinualMethod", "TaskState", "available_methods", "get_method"]
+def build_method(cfg, spec, device) -> ContinualMethod:
+    """The configured method, or only its learner when ``transfer.learner_only`` is set."""
+    cls = get_method(cfg.method.name)
+    if cfg.transfer.learner_only:
+        return LearnerOnly(cfg, spec, device, fresh_world_model=cls.fresh_world_model)
+    return cls(cfg, spec, device)
+
+
+__all__ = ["METHODS", "ContinualMethod", "LearnerOnly", "TaskState", "available_methods", "build_method",
+           "get_method"]

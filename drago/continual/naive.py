@@ -15,3 +15,19 @@ class Scratch(ContinualMethod):
     name = "scratch"
     description = "TD-MPC from scratch: a fresh world model at every task"
     fresh_world_model = True
+
+
+class LearnerOnly(ContinualMethod):
+    """Any method reduced to its plain learner: a test task with ``transfer.learner_only`` (spec §4.2).
+
+    The reviewer, rehearsal, VAE updates, penalties and bonuses of the run's method are off; only its
+    choice of a carried or fresh world model is kept (so a ``scratch`` run still learns from scratch).
+    The authors ran their transfer baselines this way (``use_reviewer=false use_vae=false update_vae=false``).
+    """
+
+    name = "learner-only"
+    description = "the run's method without its extras: only the learner, on the carried world model"
+
+    def __init__(self, cfg, spec, device, fresh_world_model: bool = False):
+        super().__init__(cfg, spec, device)
+        self.fresh_world_model = fresh_world_model

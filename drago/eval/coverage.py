@@ -43,6 +43,7 @@ __all__ = [
     "GridTransitions",
     "Predictor",
     "RunCheckpoint",
+    "cell_scores",
     "coverage_of_run",
     "decode_batch",
     "format_table",
@@ -329,3 +330,33 @@ def format_table(rows: list[dict[str, Any]]) -> list[str]:
         cells = "".join(f"  {entry[g]:>8.3f}" if g in entry else f"  {'-':>8}" for g in GROUPS)
         lines.append(f"{run:<{width}}  {stage:>5}  {entry['task']:<8}{cells}")
     return lines
+
+
+def cell_scores(score: np.ndarray) -> np.ndarray:
+    """Per-cell prediction score on the map: the mean over each cell's 4 headings x 3 actions (spec §4.4).
+
+    Args:
+        score: (N,) per-transition scores in the row order of :func:`grid_transitions`, e.g.
+            :attr:`CoverageResult.score`.
+
+    Returns:
+        (SIZE, SIZE) float64 array indexed ``[y, x]`` (image order: row y, column x). Walls and blocks
+        are NaN; so is a traversable cell with a non-finite prediction, since a mean over a diverged
+        prediction is meaningless (use :func:`~drago.envs.fourrooms.is_traversable` to tell them apart).
+
+    Raises:
+        ValueError: If ``score`` does not have one entry per grid transition.
+    """
+    cells = grid_transitions().cells
+    score = np.asarray(score, dtype=np.float64)
+    if score.shape != (len(cells),):
+        raise ValueError(f"score has shape {score.shape}, expected ({len(cells)},): one per grid transition")
+    flat = cells[:, 1] * SIZE + cells[:, 0]
+    total = np.zeros(SIZE * SIZE)
+    count = np.zeros(SIZE * SIZE)
+    np.add.at(total, flat, score)
+    np.add.at(count, flat, 1.0)
+    out = np.full(SIZE * SIZE, np.nan)
+    seen = count > 0
+    out[seen] = total[seen] / count[seen]
+    return out.reshape(SIZE, SIZE)

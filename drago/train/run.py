@@ -10,7 +10,7 @@ import torch
 import yaml
 
 from drago.config import Config, ConfigError
-from drago.continual import get_method
+from drago.continual import build_method
 from drago.envs import env_spec
 from drago.train.checkpoint import load_checkpoint
 from drago.train.logger import RunLogger
@@ -93,6 +93,6 @@ def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> 
     spec = env_spec(cfg.env.domain)
     # Methods may build networks of their own (DRAGO's VAE): seed them like everything else.
     torch.manual_seed(cfg.train.seed)
-    method = get_method(cfg.method.name)(cfg, spec, device)
+    method = build_method(cfg, spec, device)
     trainer = Trainer(cfg, run_dir, method, spec, None, device, progress=progress)
     return trainer

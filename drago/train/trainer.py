@@ -82,6 +82,15 @@ class Trainer:
     def task_checkpoint(self, index: int) -> Path:
         return self.ckpt_dir / f"task{index + 1}_{self.cfg.env.tasks[index]}.pt"
 
+    def start_checkpoint(self, index: int) -> Path | None:
+        """The checkpoint task ``index`` starts from: the previous task's, or for the first task of a
+        transfer run (``transfer.checkpoint``) the other run's stage it transfers from."""
+        if index > 0:
+            return self.task_checkpoint(index - 1)
+        if self.cfg.transfer.checkpoint is not None:
+            return self.run_dir / self.cfg.transfer.checkpoint  # an absolute path stays absolute
+        return None
+
     @property
     def resume_checkpoint(self) -> Path:
         return self.ckpt_dir / "resume.pt"
@@ -129,14 +138,14 @@ class Trainer:
         name = cfg.env.tasks[index]
         torch.manual_seed(task_seed(cfg.train.seed, index, 0))
         rng = np.random.default_rng(task_seed(cfg.train.seed, index, 1))
-        env = make_env(cfg.env.domain, name, cfg.env.dense_reward)
+        env = make_env(cfg.env.domain, name, cfg.env.dense_reward, action_repeat=cfg.env.action_repeat)
         env.reset(seed=task_seed(cfg.train.seed, index, 2))
 
         world_model = build_world_model(cfg, spec, device)
         previous = None
-        if index > 0:
-            previous = load_checkpoint(self.task_checkpoint(index - 1), kind="task", domain=cfg.env.domain,
-                                       map_location=device)
+        start = self.start_checkpoint(index)
+        if start is not None:
+            previous = load_checkpoint(start, kind="task", domain=cfg.env.domain, map_location=device)
             if not self.method.fresh_world_model:
                 world_model.load_state_dict(previous["world_model"])
             self.method.load_carry_state(previous["method"])
@@ -164,8 +173,8 @@ class Trainer:
             bar.update(task.step)
             self.logger.print(f"[{name}] resumed at step {task.step} from {self.resume_checkpoint.name}")
         else:
-            # Drop whatever a crashed attempt at this task had logged.
-            self.logger.restore(previous["log_positions"] if previous else {k: 0 for k in self.logger.positions()})
+            # Drop whatever a crashed attempt at this task had logged (a transfer's source run has logs of its own).
+            self.logger.restore(previous["log_positions"] if index > 0 else {k: 0 for k in self.logger.positions()})
             last_eval = self.evaluate(task)
         started = time.perf_counter() - elapsed
 
@@ -203,7 +212,7 @@ class Trainer:
             env_step = self.env_steps(task.step)
             global_step = self.global_env_step(task)
             self.logger.log("train", row, global_step)
-            if env_step // cfg.train.eval_freq > last_eval_env // cfg.train.eval_freq or budget.finished(task):
+            if self._eval_due(task, env_step, last_eval_env) or budget.finished(task):
                 last_eval = self.evaluate(task)
                 last_eval_env = env_step
             t3 = time.perf_counter()
@@ -235,11 +244,17 @@ class Trainer:
         self.write_summary()
 
     # ---- evaluation --------------------------------------------------------------------------
+    def _eval_due(self, task: TaskState, env_step: int, last_eval_env: int) -> bool:
+        every = self.cfg.train.eval_every_episodes
+        if every is not None:
+            return task.episodes % every == 0
+        return env_step // self.cfg.train.eval_freq > last_eval_env // self.cfg.train.eval_freq
+
     def evaluate(self, task: TaskState) -> dict[str, float]:
         """Mean undiscounted return of the learner's planner in eval mode on the current task."""
         cfg = self.cfg
         env_step = self.env_steps(task.step)
-        env = make_env(cfg.env.domain, task.name, cfg.env.dense_reward)
+        env = make_env(cfg.env.domain, task.name, cfg.env.dense_reward, action_repeat=cfg.env.action_repeat)
         env.reset(seed=task_seed(cfg.train.seed, task.index, 3, env_step))
         returns = []
         for _ in range(cfg.train.eval_episodes):
@@ -251,8 +266,10 @@ class Trainer:
         if optimum:
             result["optimal_return"] = optimum
             result["fraction_of_optimal"] = result["episode_reward"] / optimum
+        # env_step counts every env step of the task (learner and reviewer); learner_env_step the learner's.
         row = {"task": task.name, "task_index": task.index, "step": task.step, "learner_step": task.learner_steps,
-               "env_step": env_step, **result}
+               "env_step": env_step, **result, "episode": task.episodes,
+               "learner_env_step": self.env_steps(task.learner_steps)}
         self.logger.log("eval", row, self.global_env_step(task))
         self.logger.print(f"[{task.name}] env_step {env_step:>7d}  eval return {result['episode_reward']:7.1f}"
                           + (f"  ({result['fraction_of_optimal']:.0%} of optimal {optimum:.1f})" if optimum else ""))
@@ -310,6 +327,10 @@ class Trainer:
         summary = {"preset": cfg.preset, "method": cfg.method.name, "seed": cfg.train.seed, "domain": cfg.env.domain,
                    "tasks_planned": list(cfg.env.tasks), "complete": len(tasks) == len(cfg.env.tasks),
                    "tasks": tasks, "wall_time_s": round(sum(t["wall_time_s"] for t in tasks), 2)}
+        if cfg.transfer.checkpoint is not None:
+            from drago.train.transfer import transfer_summary
+
+            summary["transfer"] = transfer_summary(cfg, self.run_dir, tasks)
         tmp = self.run_dir / "summary.json.tmp"
         tmp.write_text(json.dumps(summary, indent=2) + "\n")
         tmp.replace(self.run_dir / "summary.json")

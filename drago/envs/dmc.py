@@ -1,0 +1,299 @@
+"""DeepMind Control cheetah and walker behind a gymnasium API (spec §1.2).
+
+Every task of a domain runs on the stock dm_control XML and the stock initial-state distribution (the
+official custom XMLs differ from stock only visually, spec §1.2.4); a task only chooses the reward,
+computed by the pure functions below from the physics after each control step.
+
+:class:`DMCEnv` differs from the official wrapper stack in two deliberate ways:
+
+* the episode length is managed outside dm_control: the inner environment has an infinite time limit
+  (the official code passes a step count as seconds, so it never times out either, spec §1.2.1), and
+  ``max_episode_steps`` only sets ``truncated``; stepping past it is allowed, for pre-rollouts;
+* seeding: every reset draws the dm_control task's ``RandomState`` seed from ``env.np_random``, so the
+  initial state depends only on that generator. Restoring its state (as a resumed run does) replays
+  exactly the same initial states, and ``reset(seed=s)`` always gives the same first observation.
+
+Rendering is headless through ``MUJOCO_GL``. When it is unset on a Linux machine without a display, the
+first usable of ``egl`` and ``osmesa`` is chosen here before dm_control is imported (``off`` if neither
+library is installed: stepping still works, rendering raises). Set ``MUJOCO_GL`` yourself to override.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import logging
+import os
+import sys
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+
+from drago.envs.tasks import DmcTask, get_dmc_task
+
+__all__ = ["DMC_DOMAINS", "DMCEnv", "DmcDomain", "cheetah_jump_and_run_reward", "cheetah_jump_reward",
+           "cheetah_run_reward", "default_gl_backend", "reward_function", "walker_reward"]
+
+
+@dataclass(frozen=True)
+class DmcDomain:
+    """Fixed facts of a domain (spec §1.2.1 table) and the official code's defaults."""
+
+    obs_dim: int
+    action_dim: int
+    control_timestep: float  # seconds per control step (one dm_control step)
+    action_repeat: int  # official default
+    episode_length: int  # agent steps per episode (1000 control steps / action_repeat)
+
+
+DMC_DOMAINS: dict[str, DmcDomain] = {
+    # position = qpos[1:] (8) + velocity = qvel (9); physics dt = control dt = 0.01 s.
+    "cheetah": DmcDomain(obs_dim=17, action_dim=6, control_timestep=0.01, action_repeat=4, episode_length=250),
+    # orientations (xx, xz of 7 bodies: 14) + torso height (1) + velocity (9); 10 physics steps of 0.0025 s.
+    "walker": DmcDomain(obs_dim=24, action_dim=6, control_timestep=0.025, action_repeat=2, episode_length=500),
+}
+
+
+# ------------------------------------------------------------------------------------------------
+# Headless rendering backend
+# ------------------------------------------------------------------------------------------------
+def default_gl_backend() -> str | None:
+    """The ``MUJOCO_GL`` value to use when the user set none: None where a display exists or off Linux."""
+    if not sys.platform.startswith("linux") or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return None
+    for backend, library in (("egl", "EGL"), ("osmesa", "OSMesa")):
+        if ctypes.util.find_library(library):
+            return backend
+    return "off"
+
+
+if "MUJOCO_GL" not in os.environ:
+    _backend = default_gl_backend()
+    if _backend is not None:
+        os.environ["MUJOCO_GL"] = _backend
+
+
+class _DropCompilerNotice(logging.Filter):
+    """MuJoCo >= 3.3 warns on every compile of the stock cheetah XML that `settotalmass` is deprecated.
+    The stock file is used on purpose (its masses are the benchmark's), so the notice is only noise."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "settotalmass" not in record.getMessage()
+
+
+logging.getLogger("absl").addFilter(_DropCompilerNotice())
+
+try:
+    from dm_control.rl import control
+    from dm_control.suite import cheetah, walker
+    from dm_control.utils import rewards
+except ImportError as err:  # pragma: no cover - exercised only without the extra
+    raise ImportError("the DeepMind Control domains need dm_control: pip install 'drago[dmc]' "
+                      f"(scripts/setup.sh installs it) [{err}]") from err
+
+
+# ------------------------------------------------------------------------------------------------
+# Rewards (spec §1.2.3): pure functions of the physics after a control step
+# ------------------------------------------------------------------------------------------------
+CHEETAH_RUN_SPEED = 10.0
+CHEETAH_JUMP_HEIGHT = 1.2
+CHEETAH_JUMP_SPEED = 0.5  # |vx| allowed while jumping (the custom task's move_speed)
+WALKER_STAND_HEIGHT = 1.2
+_FEET = ("bfoot", "ffoot")
+_INF = float("inf")
+
+
+def _vx(physics) -> float:
+    """x-velocity of the torso subtree's centre of mass (``speed()`` / ``horizontal_velocity()``)."""
+    return float(physics.named.data.sensordata["torso_subtreelinvel"][0])
+
+
+def _z(physics, body: str) -> float:
+    return float(physics.named.data.xpos[body, "z"])
+
+
+def cheetah_run_reward(physics, speed: float = CHEETAH_RUN_SPEED, direction: int = 1) -> float:
+    """tol(vx; [S, inf), m=S, linear, v=0) forward; its mirror (-inf, -S] backward = clip(±vx/S, 0, 1)."""
+    bounds = (speed, _INF) if direction >= 0 else (-_INF, -speed)
+    return float(rewards.tolerance(_vx(physics), bounds=bounds, margin=speed, value_at_margin=0, sigmoid="linear"))
+
+
+def _feet_height_terms(physics, height: float) -> list[float]:
+    """tol((z_torso + z_f)/2; [h, inf), m=h/2, gaussian) for f in (bfoot, ffoot)."""
+    torso = _z(physics, "torso")
+    return [float(rewards.tolerance((torso + _z(physics, f)) / 2, bounds=(height, _INF), margin=height / 2))
+            for f in _FEET]
+
+
+def cheetah_jump_reward(physics) -> float:
+    """Mean over both feet of TD-MPC2's stand-on-one-foot reward (5 h_f + s) / 6."""
+    still = float(rewards.tolerance(_vx(physics), bounds=(-CHEETAH_JUMP_SPEED, CHEETAH_JUMP_SPEED),
+                                    margin=CHEETAH_JUMP_SPEED, value_at_margin=0, sigmoid="linear"))
+    return float(np.mean([(5 * h + still) / 6 for h in _feet_height_terms(physics, CHEETAH_JUMP_HEIGHT)]))
+
+
+def cheetah_jump_and_run_reward(physics, speed: float = 7.5, direction: int = 1) -> float:
+    """DRAGO's new tasks: (mean feet-height term at 0.9 m + clip(±vx/7.5, 0, 1)) / 2 (thresholds x 3/4)."""
+    jump = float(np.mean(_feet_height_terms(physics, 0.75 * CHEETAH_JUMP_HEIGHT)))
+    return (jump + cheetah_run_reward(physics, speed, direction)) / 2
+
+
+def walker_reward(physics, speed: float, direction: int = 1) -> float:
+    """stand if S = 0, else stand (5 move + 1) / 6 with move = tol(±vx; [S, inf), m=S/2, linear, v=0.5)."""
+    standing = rewards.tolerance(_z(physics, "torso"), bounds=(WALKER_STAND_HEIGHT, _INF),
+                                 margin=WALKER_STAND_HEIGHT / 2)
+    upright = (1 + float(physics.named.data.xmat["torso", "zz"])) / 2
+    stand = (3 * float(standing) + upright) / 4
+    if speed == 0:
+        return stand
+    bounds = (speed, _INF) if direction >= 0 else (-_INF, -speed)
+    move = float(rewards.tolerance(_vx(physics), bounds=bounds, margin=speed / 2, value_at_margin=0.5,
+                                   sigmoid="linear"))
+    return stand * (5 * move + 1) / 6
+
+
+def reward_function(task: DmcTask | str) -> Callable[[Any], float]:
+    """The reward of a catalogue task as a function of the physics."""
+    task = get_dmc_task(task) if isinstance(task, str) else task
+    if task.kind == "cheetah-run":
+        return lambda physics: cheetah_run_reward(physics, task.speed, task.direction)
+    if task.kind == "cheetah-jump":
+        return cheetah_jump_reward
+    if task.kind == "cheetah-jump-and-run":
+        return lambda physics: cheetah_jump_and_run_reward(physics, task.speed, task.direction)
+    if task.kind == "walker":
+        return lambda physics: walker_reward(physics, task.speed, task.direction)
+    raise ValueError(f"unknown reward kind {task.kind!r} of task {task.name}")
+
+
+# ------------------------------------------------------------------------------------------------
+# dm_control tasks: the stock ones with the reward replaced
+# ------------------------------------------------------------------------------------------------
+class _CheetahTask(cheetah.Cheetah):
+    def __init__(self, reward: Callable[[Any], float], random=None):
+        self._reward = reward
+        super().__init__(random=random)
+
+    def get_reward(self, physics):
+        return self._reward(physics)
+
+
+class _WalkerTask(walker.PlanarWalker):
+    def __init__(self, reward: Callable[[Any], float], random=None):
+        self._reward = reward
+        super().__init__(move_speed=0, random=random)  # move_speed is read only by the stock reward
+
+    def get_reward(self, physics):
+        return self._reward(physics)
+
+
+def _make_dm_env(task: DmcTask) -> control.Environment:
+    reward = reward_function(task)
+    if task.domain == "cheetah":
+        physics = cheetah.Physics.from_xml_string(*cheetah.get_model_and_assets())
+        return control.Environment(physics, _CheetahTask(reward), time_limit=_INF)
+    physics = walker.Physics.from_xml_string(*walker.get_model_and_assets())
+    return control.Environment(physics, _WalkerTask(reward), time_limit=_INF,
+                               control_timestep=DMC_DOMAINS["walker"].control_timestep)
+
+
+# ------------------------------------------------------------------------------------------------
+# gymnasium wrapper
+# ------------------------------------------------------------------------------------------------
+class DMCEnv(gym.Env):
+    """One DeepMind Control task with action repeat, a flat float32 state and external episode length.
+
+    Args:
+        task: a key of :data:`drago.envs.tasks.DMC_TASKS` (e.g. ``"cheetah-run"``) or the task itself.
+        action_repeat: control steps per agent step; rewards are summed over them (None: the domain's
+            official value, 4 cheetah / 2 walker).
+        max_episode_steps: agent steps after which ``step`` reports ``truncated=True`` (None: never).
+            The environment keeps stepping past it; only the caller ends an episode.
+        render_mode: ``"rgb_array"`` to allow :meth:`render`.
+        render_size: (height, width) of rendered frames.
+        camera_id: dm_control camera (0: the tracking camera of both domains).
+
+    Observations are the dm_control observation dict flattened in its order (cheetah: position,
+    velocity; walker: orientations, height, velocity). Actions are clipped to [-1, 1], the actuators'
+    range. ``terminated`` is always False: these tasks never end early.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(self, task: DmcTask | str, action_repeat: int | None = None, max_episode_steps: int | None = None,
+                 render_mode: str | None = None, render_size: tuple[int, int] = (240, 320), camera_id: int = 0):
+        self.task = get_dmc_task(task) if isinstance(task, str) else task
+        domain = DMC_DOMAINS[self.task.domain]
+        self.action_repeat = domain.action_repeat if action_repeat is None else int(action_repeat)
+        if self.action_repeat < 1:
+            raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"unsupported render_mode {render_mode!r}; use 'rgb_array' or None")
+        self.max_episode_steps = max_episode_steps
+        self.render_mode = render_mode
+        self.render_size = render_size
+        self.camera_id = camera_id
+        self._env = _make_dm_env(self.task)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (domain.obs_dim,), np.float32)
+        spec = self._env.action_spec()
+        self.action_space = gym.spaces.Box(spec.minimum.astype(np.float32), spec.maximum.astype(np.float32),
+                                           dtype=np.float32)
+        # One frame per agent step: cheetah 25 fps, walker 20 fps at the official action repeats.
+        self.metadata = {**self.metadata, "render_fps": 1.0 / (domain.control_timestep * self.action_repeat)}
+        self._steps = 0
+        self._needs_reset = True
+
+    @property
+    def physics(self):
+        """The dm_control physics (``physics.named.data.qpos`` and friends)."""
+        return self._env.physics
+
+    @property
+    def elapsed_steps(self) -> int:
+        """Agent steps since the last reset."""
+        return self._steps
+
+    @staticmethod
+    def _flatten(observation: dict[str, Any]) -> np.ndarray:
+        return np.concatenate([np.asarray(v, dtype=np.float32).ravel() for v in observation.values()])
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        # The task's RandomState is re-seeded from np_random at every reset: the initial state is a
+        # function of np_random's state alone, which is what a checkpoint saves and restores.
+        self._env.task._random = np.random.RandomState(int(self.np_random.integers(2**32)))
+        time_step = self._env.reset()
+        self._steps = 0
+        self._needs_reset = False
+        return self._flatten(time_step.observation), {}
+
+    def step(self, action):
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step()")
+        action = np.asarray(action, dtype=np.float64).reshape(self.action_space.shape)
+        action = np.clip(action, self.action_space.low, self.action_space.high)
+        reward = 0.0
+        for _ in range(self.action_repeat):
+            time_step = self._env.step(action)
+            reward += time_step.reward or 0.0
+            if time_step.last():  # never with the infinite time limit; kept for a faithful repeat loop
+                self._needs_reset = True
+                break
+        self._steps += 1
+        truncated = self.max_episode_steps is not None and self._steps >= self.max_episode_steps
+        return self._flatten(time_step.observation), float(reward), False, bool(truncated), {}
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            raise RuntimeError("create the env with render_mode='rgb_array' to render")
+        height, width = self.render_size
+        return self.physics.render(height=height, width=width, camera_id=self.camera_id)
+
+    def close(self):
+        # Free the GL context now rather than at interpreter exit, where osmesa prints tracebacks. The
+        # physics stays usable; a later render() makes a new context.
+        physics = self.physics
+        with physics._contexts_lock:
+            if physics._contexts:
+                physics._free_rendering_contexts()

@@ -1,0 +1,318 @@
+"""`drago report`: world-model heatmaps and the one-page HTML / Markdown report of a set of runs.
+
+Three tiny smoke runs (seconds each) stand for a real comparison with gaps: continual seed 1 finished
+its two tasks, continual seed 2 stopped after the first of two (a copy of a finished run cut back to
+the state it had then), and drago has one seed of a one-task sequence.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import io
+import os
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from drago import cli
+from drago.envs.fourrooms import SIZE, is_traversable, traversable_cells
+from drago.eval.coverage import COVERAGE_FILE, cell_scores, coverage_of_run, grid_transitions, write_coverage_csv
+from drago.eval.heatmap import StageMaps, heatmap_png, run_cell_scores
+from drago.eval.report import ReportError, build_report, find_run_dirs
+from drago.train.run import resume
+
+SMOKE = ["--no-progress", "train.tensorboard=false", "train.steps_per_task=200", "train.eval_freq=100"]
+TABLES = ("runs", "returns", "coverage", "metrics")
+
+
+def train(out: Path, method: str, seed: int, tasks: str) -> Path:
+    assert cli.main(["train", "smoke", "--out", str(out), "--method", method, "--seed", str(seed),
+                     f"env.tasks={tasks}", *SMOKE]) == 0
+    return out
+
+
+def cut_back_to_first_task(finished: Path, out: Path) -> Path:
+    """The run directory as it was when the first task had finished and the second had not."""
+    shutil.copytree(finished, out, ignore=shutil.ignore_patterns("task2_*", "summary.json"))
+    with (out / "eval.csv").open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        columns, rows = reader.fieldnames, [r for r in reader if r["task_index"] == "0"]
+    with (out / "eval.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    resume(out, progress=False).write_summary()
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("runs")
+    staging = tmp_path_factory.mktemp("staging")
+    return {
+        "c1": train(root / "continual-seed1", "continual", 1, "[room1,room2]"),
+        "c2": cut_back_to_first_task(train(staging / "continual-seed2", "continual", 2, "[room1,room2]"),
+                                     root / "continual-seed2"),
+        "d1": train(root / "drago-seed1", "drago", 1, "[room1]"),
+    }
+
+
+@pytest.fixture(scope="module")
+def report(runs, tmp_path_factory) -> tuple[Path, Path]:
+    return build_report([runs["c1"], runs["c2"], runs["d1"]], tmp_path_factory.mktemp("report"))
+
+
+class TableParser(HTMLParser):
+    """Collects every <table id=...> as rows of cell texts (header row first) and every <img> src."""
+
+    def __init__(self):
+        super().__init__()
+        self.tables: dict[str, list[list[str]]] = {}
+        self.images: list[str] = []
+        self.body: dict[str, str] = {}
+        self._table: list[list[str]] | None = None
+        self._cell: list[str] | None = None
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "table":
+            self._table = self.tables.setdefault(attrs.get("id", ""), [])
+        elif tag == "tr" and self._table is not None:
+            self._table.append([])
+        elif tag in ("td", "th"):
+            self._cell = []
+        elif tag == "img":
+            self.images.append(attrs.get("src", ""))
+        elif tag == "body":
+            self.body = attrs
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._cell is not None:
+            self._table[-1].append("".join(self._cell))
+            self._cell = None
+        elif tag == "table":
+            self._table = None
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+def parse(html_text: str) -> TableParser:
+    parser = TableParser()
+    parser.feed(html_text)
+    return parser
+
+
+def png(data: bytes) -> Image.Image:
+    image = Image.open(io.BytesIO(data))
+    assert image.format == "PNG"
+    image.load()  # decodes every pixel: a truncated file fails here
+    return image
+
+
+def not_blank(image: Image.Image) -> bool:
+    return image.convert("RGB").getcolors(maxcolors=1) is None  # None: more than one colour
+
+
+def rows_by(table: list[list[str]], *keys: str) -> dict[tuple[str, ...], list[str]]:
+    header, *rows = table
+    index = [header.index(k) for k in keys]
+    return {tuple(row[i] for i in index): dict(zip(header, row)) for row in rows}
+
+
+def files_in(path: Path) -> dict[str, int]:
+    return {str(p.relative_to(path)): p.stat().st_mtime_ns for p in sorted(path.rglob("*"))}
+
+
+# ---------------------------------------------------------------------------------------------------
+# per-cell scores and the heatmap figure
+# ---------------------------------------------------------------------------------------------------
+def test_cell_scores_average_each_cells_twelve_transitions():
+    data = grid_transitions()
+    # A score that differs per cell and per (heading, action): the cell's mean is known in closed form.
+    score = data.cells[:, 0] + 100.0 * data.cells[:, 1] + data.headings * 3 + data.action_idx
+    cells = cell_scores(score)
+    assert cells.shape == (SIZE, SIZE)
+    for x, y in traversable_cells():
+        assert cells[y, x] == pytest.approx(x + 100 * y + np.mean([3 * d + a for d in range(4) for a in range(3)]))
+    walls = np.array([[not is_traversable((x, y)) for x in range(SIZE)] for y in range(SIZE)])
+    assert np.isnan(cells[walls]).all() and np.isfinite(cells[~walls]).all()
+    # One diverged prediction makes its cell NaN, never a mean of the other eleven.
+    broken = score.astype(float)
+    broken[np.flatnonzero((data.cells == (1, 1)).all(1))[5]] = np.nan
+    assert np.isnan(cell_scores(broken)[1, 1]) and np.isfinite(cell_scores(broken)[1, 2])
+    with pytest.raises(ValueError, match="one per grid transition"):
+        cell_scores(score[:-1])
+
+
+def test_heatmap_png_draws_methods_by_stages(runs):
+    maps = run_cell_scores(runs["c1"])
+    assert [(c.stage, c.task) for c, _ in maps] == [(1, "room1"), (2, "room2")]
+    diverged = maps[1][1].copy()
+    diverged[1, 1] = np.nan
+    panels = {"continual": {c.stage: StageMaps(c.task, [m, m]) for c, m in maps},
+              "drago": {1: StageMaps("room2", [diverged])}}
+    image = png(heatmap_png(panels))
+    assert image.width > image.height > 200 and not_blank(image)
+    with pytest.raises(ValueError, match="at least one panel"):
+        heatmap_png({})
+
+
+# ---------------------------------------------------------------------------------------------------
+# the report
+# ---------------------------------------------------------------------------------------------------
+def test_report_on_partial_results(runs, report):
+    html_path, md_path = report
+    page = parse(html_path.read_text())
+    assert set(page.tables) == {f"table-{key}" for key in TABLES}
+
+    table = rows_by(page.tables["table-runs"], "method", "seed")
+    assert table[("continual", "1")]["complete"] == "yes" and table[("continual", "1")]["tasks done"] == "2/2"
+    assert table[("continual", "2")]["complete"] == "no" and table[("continual", "2")]["tasks done"] == "1/2"
+    assert table[("drago", "1")]["complete"] == "yes" and table[("drago", "1")]["tasks done"] == "1/1"
+
+    returns = rows_by(page.tables["table-returns"], "method", "task")
+    assert set(returns) == {("continual", "room1"), ("continual", "room2"), ("drago", "room1")}
+    assert returns[("continual", "room1")]["seeds"] == "2" and returns[("continual", "room2")]["seeds"] == "1"
+    # Two seeds: mean ± std [CI]; one seed: the bare value.
+    number = r"-?\d\.\d\d"
+    assert re.fullmatch(rf"{number} ± {number} \[{number}, {number}\]",
+                        returns[("continual", "room1")]["fraction of optimum"])
+    assert re.fullmatch(number, returns[("continual", "room2")]["fraction of optimum"])
+
+    coverage = rows_by(page.tables["table-coverage"], "method", "after stage")
+    assert {k: v["seeds"] for k, v in coverage.items()} == {
+        ("continual", "1: room1"): "2", ("continual", "2: room2"): "1", ("drago", "1: room1"): "1"}
+    truth = {(r["stage"], r["room"]): r["accuracy"] for r in coverage_of_run(runs["c1"])}
+    assert coverage[("continual", "2: room2")]["room1"] == f"{truth[(2, 'room1')]:.2f}"
+
+    # Runs are grouped by how many stages they finished: T = 1 has no forgetting to show.
+    metrics = rows_by(page.tables["table-metrics"], "method", "stages T")
+    assert set(metrics) == {("continual", "2"), ("continual", "1"), ("drago", "1")}
+    assert metrics[("continual", "1")]["BWT"] == "–"
+    expected_bwt = truth[(2, "room1")] - truth[(1, "room1")]
+    assert metrics[("continual", "2")]["BWT"] == f"{expected_bwt:.2f}"
+
+    md = md_path.read_text()
+    missing = md.split("## Missing", 1)[1]
+    assert f"{runs['c2']} (continual, seed 2): incomplete, 1 of 2 tasks finished; not reached: room2" in missing
+    assert "drago: 1 seed(s) (1) against 2 for continual" in missing
+    assert "drago: room2 not in its runs' task sequence" in missing
+    assert "continual: room2 finished by 1 of 2 runs" in missing
+    assert len(page.images) == 2 and all(src.startswith("data:image/png;base64,") for src in page.images)
+
+
+def test_markdown_has_the_same_tables_and_figures(report):
+    html_path, md_path = report
+    page = parse(html_path.read_text())
+    lines = md_path.read_text().splitlines()
+    for table in page.tables.values():
+        for row in table:
+            assert "| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |" in lines
+    figures = re.findall(r"!\[[^]]*\]\(([^)]+)\)", "\n".join(lines))
+    assert sorted(figures) == ["curves.png", "heatmap.png"]
+    embedded = sorted(base64.b64decode(src.split(",", 1)[1]) for src in page.images)
+    assert embedded == sorted((md_path.parent / name).read_bytes() for name in figures)
+
+
+def test_report_writes_nothing_into_runs_and_reuses_fresh_coverage(runs, tmp_path):
+    before = {name: files_in(path) for name, path in runs.items()}
+    build_report(list(runs.values()), tmp_path / "a")
+    assert {name: files_in(path) for name, path in runs.items()} == before
+
+    # A coverage.csv that matches the checkpoints is used as is; an out-of-date one is not.
+    run = tmp_path / "run"
+    shutil.copytree(runs["c1"], run)
+    rows = coverage_of_run(run)
+    write_coverage_csv(rows, run / COVERAGE_FILE)
+    _, md_path = build_report([run], tmp_path / "fresh")
+    assert "coverage computed from the checkpoints" not in md_path.read_text()
+    stale = "coverage.csv is older than or does not match its checkpoints"
+    write_coverage_csv([r for r in rows if r["stage"] == 1], run / COVERAGE_FILE)
+    _, md_path = build_report([run], tmp_path / "stale")
+    text = md_path.read_text()
+    assert stale in text and "| continual | 2: room2 | 1 |" in text
+    # Written before the checkpoints (e.g. of an earlier run in the same directory): not trusted either.
+    os.utime(write_coverage_csv(rows, run / COVERAGE_FILE), (0, 0))
+    _, md_path = build_report([run], tmp_path / "older")
+    assert stale in md_path.read_text()
+
+
+def test_find_run_dirs_takes_folders_but_not_what_lies_inside_a_run(runs, tmp_path):
+    parent = runs["c1"].parent
+    assert find_run_dirs([parent]) == sorted(runs.values())
+    assert find_run_dirs([runs["d1"], parent]) == [runs["d1"], *sorted(set(runs.values()) - {runs["d1"]})]
+    nested = tmp_path / "run"
+    (nested / "transfer" / "room1to2-after1").mkdir(parents=True)
+    for folder in (nested, nested / "transfer" / "room1to2-after1"):
+        shutil.copy(runs["c1"] / "config.yaml", folder / "config.yaml")
+    assert find_run_dirs([tmp_path]) == [nested]
+    with pytest.raises(ReportError, match="holds none below it"):
+        find_run_dirs([runs["c1"] / "checkpoints"])
+
+
+def one_line_error(capsys, argv: list[str], fragment: str) -> None:
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("drago: error: ") and fragment in err, err
+
+
+def test_cli_report(runs, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["report", str(runs["c1"].parent)]) == 0
+    assert capsys.readouterr().out.splitlines() == ["wrote reports/report.html", "wrote reports/report.md"]
+    assert len(rows_by(parse(Path("reports/report.html").read_text()).tables["table-runs"], "run directory")) == 3
+
+    one_line_error(capsys, ["report"], "RUN_DIR")
+    one_line_error(capsys, ["report", str(tmp_path / "nowhere")], "does not exist")
+    one_line_error(capsys, ["report", str(runs["c1"] / "checkpoints")], "no config.yaml")
+    one_line_error(capsys, ["report", str(runs["c1"] / "config.yaml")], "no config.yaml")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    shutil.copy(runs["c1"] / "config.yaml", broken / "config.yaml")
+    (broken / "summary.json").write_text("{not json")
+    one_line_error(capsys, ["report", str(broken)], "summary.json is not readable JSON")
+    (broken / "summary.json").unlink()
+    (broken / "eval.csv").write_text("a,b\n1,2\n")
+    one_line_error(capsys, ["report", str(runs["c1"]), str(broken)], "eval.csv lacks the column(s)")
+    one_line_error(capsys, ["report", str(runs["c1"]), "--out", str(runs["c1"] / "config.yaml")],
+                   "cannot write the report")
+
+
+# ---------------------------------------------------------------------------------------------------
+# in a real browser
+# ---------------------------------------------------------------------------------------------------
+CHROMIUM = shutil.which("chromium")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no `chromium` on PATH (scripts/setup.sh installs Debian's package "
+                                              "where apt-get and root or sudo are available)")
+def test_report_renders_in_headless_chromium(report, tmp_path):
+    html_path, _ = report
+    browser = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+               f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=5000"]
+    url = html_path.resolve().as_uri()
+    dom = subprocess.run([*browser, "--dump-dom", url], capture_output=True, text=True, timeout=120, check=True).stdout
+    page = parse(dom)
+    assert {f"table-{key}" for key in TABLES} <= set(page.tables)
+    assert page.tables["table-runs"][0][:2] == ["method", "seed"] and len(page.tables["table-runs"]) == 4
+    # Set by the page's own script on window load: every <img> decoded and has a size.
+    assert len(page.images) == 2
+    assert page.body.get("data-images-total") == "2" and page.body.get("data-images-loaded") == "2"
+    for src in page.images:
+        assert src.startswith("data:image/png;base64,")
+        assert not_blank(png(base64.b64decode(src.split(",", 1)[1])))
+
+    shot = tmp_path / "shot.png"
+    subprocess.run([*browser, f"--screenshot={shot}", "--window-size=1280,2000", url],
+                   capture_output=True, timeout=120, check=True)
+    image = png(shot.read_bytes())
+    assert image.size == (1280, 2000) and not_blank(image)

@@ -53,8 +53,18 @@ def _parser() -> argparse.ArgumentParser:
     coverage.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     coverage.add_argument("--out", type=Path, default=None, metavar="CSV",
                           help="also write every run's rows into this one CSV")
+    heldout = eval_sub.add_parser(
+        "heldout", help="retention matrix: each stage's world model on every task's held-out transitions (DMC)",
+        usage="drago eval heldout RUN_DIR [RUN_DIR ...] [--out CSV]",
+        description="Scores the world model after each stage on the held-out set of every task (prediction "
+                    "error and -log error), recording missing sets from the task checkpoints. Writes "
+                    "retention.csv into each run directory.")
+    heldout.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
+    heldout.add_argument("--out", type=Path, default=None, metavar="CSV",
+                         help="also write every run's rows into this one CSV")
     _add_transfer_parser(sub)
     _add_report_parser(sub)
+    _add_study_parser(sub)
     return parser
 
 
@@ -89,17 +99,22 @@ def _cmd_resume(args: argparse.Namespace) -> int:
 def _cmd_list(args: argparse.Namespace) -> int:
     from drago.config import available_presets, describe_settings
     from drago.continual import METHODS
-    from drago.envs import GRID_SEQUENCES, GRID_TASKS
+    from drago.envs import DMC_SEQUENCES, DOMAINS, GRID_SEQUENCES, task_descriptions
 
     print("presets:  " + ", ".join(available_presets()))
     print("methods:")
     for name, cls in METHODS.items():
         print(f"  {name:<20} {cls.description}")
-    print("tasks (minigrid):")
-    for name, task in GRID_TASKS.items():
-        reward = "dense" if task.dense else "sparse"
-        print(f"  {name:<20} {task.start} -> {task.goal}, {reward}: {task.description}")
-    print("sequences:  " + "; ".join(f"{k}: {' -> '.join(v)}" for k, v in GRID_SEQUENCES.items()))
+    tasks = {domain: task_descriptions(domain) for domain in DOMAINS}
+    width = max(len(name) for rows in tasks.values() for name, _ in rows)
+    for domain, rows in tasks.items():
+        print(f"tasks ({domain}, env.domain={domain}):")
+        for name, description in rows:
+            print(f"  {name:<{width}}  {description}")
+    sequences = {**GRID_SEQUENCES, **DMC_SEQUENCES}
+    print("sequences:")
+    for name, sequence in sequences.items():
+        print(f"  {name:<{width}}  {' -> '.join(sequence)}")
     if args.settings:
         print("settings (key, type, default):")
         for key, kind, default in describe_settings():
@@ -110,26 +125,44 @@ def _cmd_list(args: argparse.Namespace) -> int:
 def _cmd_eval_coverage(args: argparse.Namespace) -> int:
     from drago.eval.coverage import COVERAGE_FILE, coverage_of_run, format_table, run_checkpoints, write_coverage_csv
 
+    return _evaluate_runs(args, check=run_checkpoints, measure=coverage_of_run, write=write_coverage_csv,
+                          filename=COVERAGE_FILE, title="exact-match accuracy of the world model after each task:",
+                          table=format_table)
+
+
+def _cmd_eval_heldout(args: argparse.Namespace) -> int:
+    from drago.eval.heldout import (RETENTION_FILE, format_table, heldout_checkpoints, retention_matrix,
+                                    write_retention_csv)
+
+    return _evaluate_runs(args, check=heldout_checkpoints,
+                          measure=lambda run_dir: retention_matrix(run_dir, record_missing=True),
+                          write=write_retention_csv, filename=RETENTION_FILE,
+                          title="prediction score -log(MSE) of the world model after each stage (rows) "
+                                "on each task's held-out set:", table=format_table)
+
+
+def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: str, title: str, table) -> int:
+    """Measure every run's world models into a CSV per run (and optionally one for all), with a text table."""
     # Check every run before evaluating any, so a typo in the last argument fails at once.
     for run_dir in args.run_dirs:
-        run_checkpoints(run_dir)
+        check(run_dir)
     rows = []
     for run_dir in args.run_dirs:
-        run_rows = coverage_of_run(run_dir)
-        write_coverage_csv(run_rows, run_dir / COVERAGE_FILE)
+        run_rows = measure(run_dir)
+        write(run_rows, run_dir / filename)
         rows.extend(run_rows)
-    print("exact-match accuracy of the world model after each task:")
-    for line in format_table(rows):
+    print(title)
+    for line in table(rows):
         print(line)
     for run_dir in args.run_dirs:
-        print(f"wrote {run_dir / COVERAGE_FILE}")
+        print(f"wrote {run_dir / filename}")
     if args.out is not None:
-        print(f"wrote {write_coverage_csv(rows, args.out)}")
+        print(f"wrote {write(rows, args.out)}")
     return 0
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    return {"coverage": _cmd_eval_coverage}[args.eval_command](args)
+    return {"coverage": _cmd_eval_coverage, "heldout": _cmd_eval_heldout}[args.eval_command](args)
 
 
 COMMANDS = {"train": _cmd_train, "resume": _cmd_resume, "list": _cmd_list, "eval": _cmd_eval}
@@ -145,12 +178,14 @@ def _add_transfer_parser(sub) -> None:
                     "threshold) saved after stage K of RUN_DIR, with fresh heads, evaluating after every episode. "
                     "Writes RUN_DIR/transfer/TASK-afterK; continue an interrupted one with `drago resume DIR`.")
     transfer.add_argument("run_dir", type=Path, metavar="RUN_DIR")
-    transfer.add_argument("--task", default=None, help="task to learn (a test task, or a training task to relearn)")
+    transfer.add_argument("--task", default=None, help="task to learn (a test task, or a training task to relearn); "
+                                                       "DMC test tasks by their Table 1 name, e.g. jump2run")
     transfer.add_argument("--after", type=int, default=None, metavar="K",
                           help="use the world model saved after the K-th task of the run (1-based)")
     transfer.add_argument("--paper-cases", action="store_true",
-                          help="the paper's four grid cases one after the other (room1to2 after 2, room1to3 after 3 "
-                               "and 4, room3to4 after 4); finished ones are skipped, unfinished ones resumed")
+                          help="the paper's four cases of the run's domain one after the other (grid: room1to2 "
+                               "after 2, room1to3 after 3 and 4, room3to4 after 4; cheetah and walker: Table 1); "
+                               "finished ones are skipped, unfinished ones resumed")
     transfer.add_argument("--episodes", type=int, default=20, metavar="N", help="learner episodes (default 20)")
     transfer.add_argument("--few-shot-episodes", type=int, default=None, metavar="N",
                           help="read the few-shot score after N learner episodes (default 20, or --episodes if fewer)")
@@ -214,6 +249,71 @@ def _cmd_report(args: argparse.Namespace) -> int:
 COMMANDS["report"] = _cmd_report
 
 
+# ---- drago study ------------------------------------------------------------------------------------
+def _add_study_parser(sub) -> None:
+    study = sub.add_parser(
+        "study", help="the grid study in one command: methods x seeds, their transfer cases, one report",
+        usage="drago study [PRESET] [--methods M ...] [--seeds S ...] [--out DIR] [--jobs N] "
+              "[--transfer-episodes N] [--no-transfer] [--dry-run] [key=value ...]",
+        description="Runs every method x seed on the preset's sequence into OUT/METHOD/seedS, the paper's "
+                    "transfer cases of each run (as `drago transfer --paper-cases`), then `drago report` into "
+                    "OUT/report. Finished work is skipped and interrupted work resumed, so after any crash "
+                    "the same command finishes the study. Prints the plan first.",
+        epilog="key=value overrides apply to every run. A directory holding a run with other settings is an "
+               "error: choose another --out or delete it.")
+    study.add_argument("preset", nargs="?", default=None, help="preset of every run (default minigrid-cpu)")
+    study.add_argument("--methods", nargs="+", default=None, metavar="M",
+                       help="methods (default: drago continual ewc scratch replay drago-no-rehearsal "
+                            "drago-no-reviewer)")
+    study.add_argument("--seeds", nargs="+", default=None, metavar="S", help="seeds or ranges like 1-3 (default 1 2 3)")
+    study.add_argument("--out", type=Path, default=None, metavar="DIR", help="study folder (default runs/study/PRESET)")
+    study.add_argument("--jobs", type=int, default=1, metavar="N",
+                       help="runs at a time, each with cores/N torch threads (default 1)")
+    study.add_argument("--transfer-episodes", type=int, default=None, metavar="N",
+                       help="learner episodes of each transfer case (default 20)")
+    study.add_argument("--no-transfer", action="store_true", help="sequence runs and report only")
+    study.add_argument("--dry-run", action="store_true", help="print the plan, run nothing")
+
+
+def _cmd_study(args: argparse.Namespace) -> int:
+    from drago.study import (DEFAULT_EPISODES, DEFAULT_METHODS, DEFAULT_PRESET, DEFAULT_SEEDS, describe_plan,
+                             parse_seeds, plan_study, run_study)
+
+    overrides, preset = list(args.overrides), args.preset
+    if preset is not None and "=" in preset:  # `drago study key=value`: no preset named
+        overrides.insert(0, preset)
+        preset = None
+    # --methods/--seeds take every following word; key=value ones are overrides.
+    methods = [m for m in args.methods or () if "=" not in m]
+    seeds = [s for s in args.seeds or () if "=" not in s]
+    overrides += [a for a in (*(args.methods or ()), *(args.seeds or ())) if "=" in a]
+    if args.methods is not None and not methods:
+        raise UsageError("--methods needs at least one method (see `drago list`)")
+    if args.seeds is not None and not seeds:
+        raise UsageError("--seeds needs at least one seed")
+    plan = plan_study(preset or DEFAULT_PRESET, methods or DEFAULT_METHODS,
+                      parse_seeds(seeds) if seeds else DEFAULT_SEEDS, out=args.out, overrides=overrides,
+                      jobs=args.jobs, transfers=not args.no_transfer,
+                      transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes)
+    for line in describe_plan(plan, verbose=args.dry_run):
+        print(line, flush=True)
+    if args.dry_run:
+        return 0
+    try:
+        result = run_study(plan, echo=lambda line: print(line, flush=True))
+    except KeyboardInterrupt:
+        print("drago: interrupted; run the same `drago study` command again to continue", file=sys.stderr)
+        return 130
+    if not result.ok:
+        print(f"drago: {result.summary_line()}", file=sys.stderr)
+        return 1
+    print(result.summary_line())
+    return 0
+
+
+COMMANDS["study"] = _cmd_study
+
+
 def main(argv: list[str] | None = None) -> int:
     from drago.config import ConfigError
     from drago.train.checkpoint import CheckpointError
@@ -222,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args, extra = _parser().parse_known_args(argv)
         # Overrides may come before or after options; argparse alone keeps only the first group.
-        unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command != "train"]
+        unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command not in ("train", "study")]
         if unknown:
             raise UsageError(f"unrecognized arguments: {' '.join(unknown)}")
         args.overrides = extra

@@ -74,6 +74,10 @@ class AgentConfig:
     std_schedule_steps: int = 50_000
     seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
     random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)  # grid seed-phase (left, right, forward)
+    # Speed (README "Speed and precision"). bfloat16: autocast of the networks' hidden layers in updates
+    # and planning; output layers, losses, TD targets and optimizer state stay float32.
+    precision: str = "float32"  # float32 or bfloat16
+    compile: bool = False  # torch.compile the update's losses and the planner's per-step evaluation
 
 
 @dataclass
@@ -91,6 +95,10 @@ class TrainConfig:
     eval_every_episodes: int | None = None
     eval_episodes: int = 10
     checkpoint_freq: int = 50_000  # periodic resumable checkpoint every this many env steps
+    # DMC only: at the end of each task, episodes of the final learner (eval mode, own seeds and env) whose
+    # transitions are saved to heldout/task<k>_<name>.npz, never trained on; `drago eval heldout` scores every
+    # stage's world model on them (the retention matrix). 0: none.
+    heldout_episodes: int = 4
     seed: int = 1
     device: str = "cpu"  # cpu, cuda, cuda:N
     threads: int = 0  # torch intra-op threads; 0: all cores
@@ -146,6 +154,15 @@ class TransferConfig:
     # rehearsal and VAE updates; EWC's penalty; ...). False: they keep running, as in the official code.
     learner_only: bool = False
     few_shot_episodes: int = 20  # summary.json reads the few-shot score after this many learner episodes
+    # DMC "X2Y" test tasks (spec §1.2.5): every learner and evaluation episode starts with a reset followed by
+    # pre_rollout_steps agent steps of the learner saved in this task checkpoint (its heads and world model,
+    # eval-mode planning); those steps are neither stored nor counted. Relative to this run's directory.
+    pre_rollout_checkpoint: str | None = None
+    pre_rollout_steps: int = 100
+    # source: plan with the horizon and CEM std floor the source learner had at the end of its task;
+    # code: the official code's quirk, the test task's horizon schedule (1 early on) and a std floor of 0.5.
+    pre_rollout_planning: str = "source"
+    case: str | None = None  # the catalogue's test task (e.g. jump2run) this transfer runs, for summaries
 
 
 @dataclass
@@ -178,6 +195,8 @@ class Config:
 SECTIONS = ("env", "agent", "train", "method", "transfer")
 DOMAINS = ("minigrid", "cheetah", "walker")
 ELITE_SELECTIONS = ("sample", "argmax")
+PRECISIONS = ("float32", "bfloat16")
+PRE_ROLLOUT_PLANNING = ("source", "code")
 
 
 def available_presets() -> list[str]:
@@ -409,6 +428,8 @@ def validate(cfg: Config) -> None:
     if cfg.agent.elite_selection not in ELITE_SELECTIONS:
         raise ConfigError(f"unknown agent.elite_selection '{cfg.agent.elite_selection}'; valid choices: "
                           + ", ".join(ELITE_SELECTIONS))
+    if cfg.agent.precision not in PRECISIONS:
+        raise ConfigError(f"unknown agent.precision '{cfg.agent.precision}'; valid choices: " + ", ".join(PRECISIONS))
     probs = cfg.agent.random_action_probs
     if len(probs) != 3 or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
         raise ConfigError(f"agent.random_action_probs must be three non-negative numbers summing to 1, got {probs}")
@@ -434,6 +455,16 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"setting 'transfer.after' must be positive, got {cfg.transfer.after}")
     if cfg.transfer.few_shot_episodes <= 0:
         raise ConfigError(f"setting 'transfer.few_shot_episodes' must be positive, got {cfg.transfer.few_shot_episodes}")
+    if cfg.transfer.pre_rollout_steps < 0:
+        raise ConfigError(f"setting 'transfer.pre_rollout_steps' must be >= 0, got {cfg.transfer.pre_rollout_steps}")
+    if cfg.transfer.pre_rollout_planning not in PRE_ROLLOUT_PLANNING:
+        raise ConfigError(f"unknown transfer.pre_rollout_planning '{cfg.transfer.pre_rollout_planning}'; valid "
+                          f"choices: {', '.join(PRE_ROLLOUT_PLANNING)}")
+    if cfg.transfer.pre_rollout_checkpoint is not None and cfg.env.domain == "minigrid":
+        raise ConfigError("setting 'transfer.pre_rollout_checkpoint' applies to DeepMind Control test tasks, "
+                          "not to the grid")
+    if cfg.train.heldout_episodes < 0:
+        raise ConfigError(f"setting 'train.heldout_episodes' must be >= 0, got {cfg.train.heldout_episodes}")
     device = cfg.train.device
     if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
         raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")

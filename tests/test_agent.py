@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from drago.agent.agent import Agent
 from drago.agent.buffer import Batch
 from drago.agent.losses import model_losses, policy_loss
-from drago.agent.networks import TaskHeads, WorldModel
+from drago.agent.networks import TaskHeads, WorldModel, autocast
 from drago.agent.planner import PlanSettings, plan_continuous, plan_discrete, trajectory_returns
 from drago.config import AgentConfig
 
@@ -526,3 +526,201 @@ def test_random_continuous_action_is_uniform_in_box():
     draws = np.stack([agent.random_action(rng) for _ in range(2000)])
     assert draws.shape == (2000, 2) and draws.min() >= -1 and draws.max() <= 1
     assert math.isclose(float(draws.mean()), 0.0, abs_tol=0.05)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 9. Speed: shared rollouts, reduced precision, device-resident priorities, torch.compile
+# ---------------------------------------------------------------------------------------------------
+def _twin_agents(reviewer: bool = False) -> tuple[Agent, Agent]:
+    """Two identical agents (same world model weights, same heads), each with its own world model."""
+    cfg = AgentConfig(mlp_dim=MLP, horizon=H, batch_size=B)
+    out = []
+    for _ in range(2):
+        wm = make_world()
+        agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True,
+                      reviewer=reviewer)
+        torch.manual_seed(11)
+        agent.heads.load_state_dict(make_heads().state_dict())
+        perturb_last_layers(agent.heads)
+        out.append(agent)
+    return out[0], out[1]
+
+
+@pytest.mark.parametrize("train_world_model", [False, True])
+def test_update_from_a_given_rollout_equals_its_own(train_world_model):
+    """DRAGO hands each update its rows of one shared rollout; the update must not change for it."""
+    own, shared = _twin_agents(reviewer=train_world_model)
+    batch, other = make_batch(seed=2), make_batch(seed=9)
+    both = other.concat(batch)
+    torch.manual_seed(5)
+    ref = own.update(batch, step=0, train_world_model=train_world_model)
+    latents = shared.rollout(both.obs, both.actions)[:, B:]
+    torch.manual_seed(5)
+    got = shared.update(batch, step=0, train_world_model=train_world_model,
+                        latents=latents if train_world_model else latents.detach())
+    for key in ref:
+        torch.testing.assert_close(got[key], ref[key], rtol=1e-5, atol=1e-6)
+    for a, b in zip(params(own.heads), params(shared.heads)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    for a, b in zip(params(own.world_model), params(shared.world_model)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="do not match"):
+        shared.update(batch, step=1, train_world_model=False, latents=latents[:-1].detach())
+
+
+def test_output_layers_stay_float32_under_bfloat16_autocast():
+    wm, heads = make_world(), make_heads()
+    perturb_last_layers(heads)
+    z, a = torch.rand(64, OBS) * 2 - 1, F.one_hot(torch.randint(0, ACT, (64,)), ACT).float()
+    with torch.no_grad():
+        full = (wm(z, a), heads.predict_reward(z, a), heads.q_values(z, a), heads.policy(z))
+        with autocast("cpu", "bfloat16"):
+            low = (wm(z, a), heads.predict_reward(z, a), heads.q_values(z, a), heads.policy(z))
+            hidden = heads.reward[0](torch.cat((z, a), -1))
+    assert hidden.dtype == torch.bfloat16  # the hidden layers do run in bfloat16 ...
+    for f, x in zip(full, low):
+        assert x.dtype == torch.float32  # ... but every output is float32
+        assert not torch.equal(f, x) and torch.allclose(f, x, rtol=0.05, atol=0.05)
+    with autocast("cpu", "float32"):
+        assert torch.equal(wm(z, a), full[0])
+    with pytest.raises(ValueError, match="valid: float32, bfloat16"):
+        autocast("cpu", "float16")
+
+
+def test_precision_setting_is_validated():
+    from drago.config import ConfigError, load_config
+
+    assert load_config("smoke").agent.precision == "float32"
+    assert load_config("smoke", ["agent.precision=bfloat16"]).agent.precision == "bfloat16"
+    with pytest.raises(ConfigError, match="unknown agent.precision 'float16'; valid choices: float32, bfloat16"):
+        load_config("smoke", ["agent.precision=float16"])
+
+
+def _fit(precision: str, steps: int = 250) -> dict[str, float]:
+    """Fit one agent to a fixed batch whose rewards and values sit near 300 (the grid's Q scale) and vary
+    by a few units: in bfloat16 those outputs would be rounded to multiples of 2."""
+    torch.manual_seed(0)
+    cfg = AgentConfig(mlp_dim=64, horizon=H, batch_size=64, discount=0.0, update_freq=1, precision=precision)
+    wm = WorldModel(OBS, ACT, 64, use_crelu=True, squash=True)
+    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)
+    with torch.no_grad():
+        for p in (agent.heads.reward[-1].bias, agent.heads.q.l3.bias, agent.heads.q_target.l3.bias):
+            p.fill_(300.0)
+    g = torch.Generator().manual_seed(1)
+    n = 64
+    obs = torch.rand(n, OBS, generator=g) * 2 - 1
+    actions = F.one_hot(torch.randint(0, ACT, (H + 1, n), generator=g), ACT).float()
+    next_obs = torch.tanh(torch.rand(H + 1, n, OBS, generator=g) * 2 - 1)
+    states = torch.cat((obs[None], next_obs[:-1]))
+    rewards = 300 + 2 * (states @ torch.tensor([1.0, -0.5, 0.25]) + actions @ torch.tensor([0.5, -1.0, 0.0]))
+    batch = Batch(obs, actions, rewards, next_obs, torch.ones(n), np.arange(n))
+    for i in range(steps):
+        out = agent.update(batch, i)
+    return {k: float(out[k]) for k in ("reward_loss", "value_loss", "consistency_loss", "pi_loss")}
+
+
+def test_bfloat16_learns_like_float32(monkeypatch):
+    from drago.agent import networks
+
+    full, low = _fit("float32"), _fit("bfloat16")
+    for key in ("reward_loss", "value_loss", "consistency_loss"):
+        assert low[key] == pytest.approx(full[key], rel=0.25), key
+    # The check has teeth: with the output layers left in bfloat16, the reward and value losses stall
+    # at the rounding error of outputs near 300.
+    monkeypatch.setattr(networks, "_float32_output", lambda x, layer: layer(x))
+    broken = _fit("bfloat16")
+    assert broken["reward_loss"] > 2 * full["reward_loss"]
+    assert broken["value_loss"] > 2 * full["value_loss"]
+
+
+def _filled_buffer(device_priorities: bool):
+    from drago.agent.buffer import EpisodeReplay
+
+    L = 20
+    buf = EpisodeReplay(200, OBS, ACT, H, L, device="cpu", device_priorities=device_priorities)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        buf.add_episode(rng.random((L + 1, OBS)), rng.random((L, ACT)), rng.random(L))
+    return buf
+
+
+def test_device_priorities_sample_and_update_like_the_host_tree():
+    """The accelerator path (priorities kept on the device) run on the CPU: the same batches, weights
+    and stored priorities as the host sum tree, and checkpoints that load into either."""
+    host, device = _filled_buffer(False), _filled_buffer(True)
+    assert device.device_priorities and not host.device_priorities
+    rh, rd = np.random.default_rng(1), np.random.default_rng(1)
+    for k in range(30):
+        bh, bd = host.sample(64, rh), device.sample(64, rd)
+        assert isinstance(bd.indices, torch.Tensor)
+        np.testing.assert_array_equal(bh.indices, bd.indices.numpy())
+        torch.testing.assert_close(bh.weights, bd.weights)
+        assert torch.equal(bh.next_obs, bd.next_obs) and torch.equal(bh.actions, bd.actions)
+        new = torch.rand(64) * 3  # duplicated indices: the last write wins on both paths
+        host.update_priorities(bh.indices, new)
+        device.update_priorities(bd.indices, new)
+        if k % 10 == 9:
+            for buf in (host, device):
+                buf.add_episode(np.ones((21, OBS)), np.ones((20, ACT)), np.ones(20))
+    every = np.arange(host.capacity)
+    np.testing.assert_allclose(device.priorities(every), host.priorities(every), rtol=1e-12)
+    assert device.max_priority == pytest.approx(host.max_priority, rel=1e-12)
+    assert isinstance(bd.concat(bd).indices, torch.Tensor)
+    for source, target in ((device, _filled_buffer(False)), (host, _filled_buffer(True))):
+        target.load_state_dict(source.state_dict())
+        np.testing.assert_allclose(target.priorities(every), source.priorities(every), rtol=1e-12)
+        assert target.max_priority == source.max_priority
+    with pytest.raises(RuntimeError, match="finite and non-negative"):
+        device.update_priorities(bd.indices, torch.full((64,), float("nan")))
+
+
+class _HostRead(AssertionError):
+    pass
+
+
+@pytest.fixture
+def no_host_reads(monkeypatch):
+    """Fail on any Python-level read of a tensor's value on the host (a sync on a GPU)."""
+    def refuse(*_, **__):
+        raise _HostRead("host read of a tensor in the hot path")
+
+    for name in ("item", "cpu", "numpy", "tolist", "__bool__", "__float__", "__int__", "__index__"):
+        monkeypatch.setattr(torch.Tensor, name, refuse)
+
+
+def test_hot_path_never_reads_tensors_on_the_host(no_host_reads):
+    buf = _filled_buffer(True)
+    rng = np.random.default_rng(0)
+    wm, heads = make_world(), make_heads()
+    continuous_wm, continuous_heads = make_world(act_dim=2, squash=False), make_heads(act_dim=2, discrete=False)
+    for _ in range(2):
+        batch = buf.sample(B, rng)
+        out = losses_for(wm, heads, batch)
+        pi = policy_loss(heads, out.latents, RHO, 0.05)
+        (out.total.mean() + pi).backward()
+        buf.update_priorities(batch.indices, out.priority)
+        for selection in ("sample", "argmax"):
+            obs = torch.tensor([0.1, -0.2, 0.3])
+            plan_discrete(wm, heads, obs, settings(use_q=True, elite_selection=selection), eval_mode=False)
+            plan_continuous(continuous_wm, continuous_heads, obs, settings(use_q=True, elite_selection=selection),
+                            eval_mode=False, warm_mean=None)
+    with pytest.raises(_HostRead):
+        torch.ones(1).item()  # the guard is armed
+
+
+@pytest.mark.slow
+def test_compiled_agent_trains_on_the_smoke_preset(tmp_path):
+    """agent.compile=true: torch.compile of the losses and the planner step (over a minute on a CPU)."""
+    import csv
+
+    from drago import cli
+
+    out = tmp_path / "run"
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.compile=true"]) == 0
+    rows = [r for r in csv.DictReader((out / "train.csv").open()) if r["reviewer_value_loss"]]
+    assert rows
+    for r in rows:
+        for key in ("learner_value_loss", "reviewer_consistency_loss", "reviewer_value_loss", "vae_loss",
+                    "rehearsal_loss"):
+            assert math.isfinite(float(r[key])), key

@@ -245,6 +245,12 @@ def test_list_mentions_every_preset_method_and_task(capsys):
     out = capsys.readouterr().out
     for name in [*available_presets(), *METHODS, *GRID_TASKS]:
         assert name in out, name
+    # Every domain's tasks, each on its own line with its description, and the sequences.
+    lines = out.splitlines()
+    for name in ("cheetah-jump-and-run-backwards", "cheetah-run", "walker-walk-backwards", "walker-stand"):
+        assert any(line.split()[:1] == [name] and len(line.split()) > 1 for line in lines), name
+    assert "walker-run -> walker-walk -> walker-walk-backwards -> walker-stand" in out
+    assert "room1 -> room2 -> room3 -> room4" in out
 
 
 def test_list_settings_mentions_every_setting(capsys):

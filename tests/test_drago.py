@@ -301,3 +301,77 @@ def test_continuous_counts_round_trip():
     torch.manual_seed(1)
     other.update(probe[:1])
     assert torch.equal(counts.bonus(probe), other.bonus(probe))
+
+
+# ---------------------------------------------------------------------------------------------------
+# Speed: one world-model rollout per gradient step; reduced precision end to end
+# ---------------------------------------------------------------------------------------------------
+def test_task_two_rolls_the_world_model_once_per_gradient_step(tmp_path, monkeypatch):
+    """The learner's update reuses its rows of the reviewer's rollout instead of rolling them again."""
+    from drago.agent import agent as agent_module
+    from drago.agent import losses as losses_module
+    from drago.continual import drago as drago_module
+
+    rollouts, steps = [], []
+    original_rollout, original_step = losses_module.rollout, drago_module.Drago.gradient_step
+
+    def counting_rollout(world_model, obs, actions, horizon):
+        rollouts.append((len(steps), obs.shape[0], torch.is_grad_enabled()))
+        return original_rollout(world_model, obs, actions, horizon)
+
+    def counting_step(self, task, u):
+        steps.append(task.index)
+        return original_step(self, task, u)
+
+    monkeypatch.setattr(losses_module, "rollout", counting_rollout)
+    monkeypatch.setattr(agent_module, "rollout", counting_rollout)
+    monkeypatch.setattr(drago_module.Drago, "gradient_step", counting_step)
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(tmp_path / "run"), "--no-progress",
+                     "train.tensorboard=false", "env.tasks=[room1,room2]"]) == 0
+    B = 32  # the smoke preset's batch
+    for index, rows in ((0, B), (1, 2 * B)):
+        mine = [r for r in rollouts if steps[r[0] - 1] == index]
+        assert len(mine) == steps.count(index) > 0  # exactly one rollout per gradient step
+        assert all(n == rows and grad for _, n, grad in mine)  # task 1: learner rows; task 2: 2B rows
+
+
+def test_drago_trains_in_bfloat16(tmp_path):
+    import csv
+
+    out = tmp_path / "run"
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.precision=bfloat16"]) == 0
+    rows = [r for r in csv.DictReader((out / "train.csv").open()) if r["reviewer_value_loss"]]
+    assert rows
+    for r in rows:
+        for key in ("learner_value_loss", "reviewer_consistency_loss", "reviewer_mean_prediction_score",
+                    "vae_loss", "rehearsal_loss", "threshold"):
+            assert math.isfinite(float(r[key])), key
+
+
+def test_reviewer_count_bonus_stays_float32_when_planning_in_bfloat16():
+    """Classifier pseudo-counts divide by the change of a probability across one update: bfloat16
+    would round it away, so the reviewer's planner evaluates the bonus outside autocast."""
+    from drago.agent.agent import Agent
+    from drago.config import AgentConfig
+
+    torch.manual_seed(0)
+    counts = ContinuousCounts(obs_dim=3)
+    for _ in range(50):
+        counts.update(torch.randn(1, 3))
+    probe = torch.randn(512, 3)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        rounded = counts.bonus(probe)
+    assert (rounded - counts.bonus(probe)).abs().max() > 0.1  # what autocast alone would do
+
+    seen = []
+
+    def bonus(z):
+        seen.append((torch.is_autocast_enabled("cpu"), z.dtype))
+        return counts.bonus(z)
+
+    cfg = AgentConfig(mlp_dim=16, horizon=3, iterations=2, num_samples=16, num_elites=4, precision="bfloat16")
+    wm = WorldModel(3, 2, 16, use_crelu=False, squash=False)
+    reviewer = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), cfg, discrete=False, reviewer=True)
+    reviewer.act(np.zeros(3, dtype=np.float32), step=10**6, eval_mode=False, first_step=True, bonus=bonus)
+    assert seen and all(s == (False, torch.float32) for s in seen)

@@ -6,9 +6,11 @@ Sources are tiny `smoke` runs; transfers last one to three episodes of 100 steps
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -322,3 +324,257 @@ def test_transfer_errors_are_one_line(sources, drago_transfer, tmp_path, capsys,
     assert err.startswith("drago: error: ") and len(err.splitlines()) == 1 and "Traceback" not in err
     for text in expected:
         assert text in err, text
+
+
+# ---------------------------------------------------------------------------------------------------
+# DeepMind Control test tasks of Table 1 (spec §1.2.5): X2Y tasks start after a pre-rollout
+# ---------------------------------------------------------------------------------------------------
+needs_dmc = pytest.mark.skipif(importlib.util.find_spec("dm_control") is None,
+                               reason="dm_control is not installed (pip install -e '.[dmc]')")
+CHEETAH = ("cheetah-run", "cheetah-jump", "cheetah-run-backwards")  # the paper's sequence, tiny budgets
+TINY_CHEETAH = ["env.domain=cheetah", f"env.tasks=[{','.join(CHEETAH)}]", "env.action_repeat=4",
+                "env.episode_length=20", "train.steps_per_task=80", "agent.seed_steps=20", "agent.batch_size=16",
+                "train.eval_freq=160", "train.checkpoint_freq=80", "train.updates_per_episode=5",
+                "train.heldout_episodes=0"]
+PRE_STEPS = 100  # the catalogue's pre_rollout_steps
+
+
+class EpisodeLog:
+    """Wraps the trainer's run_episode: how each learner or evaluation episode started."""
+
+    def __init__(self, monkeypatch):
+        from drago.train import trainer as trainer_module
+
+        self.records: list[dict] = []
+        original = trainer_module.run_episode
+
+        def run(env, length, choose_action, start=None):
+            episode = original(env, length, choose_action, start)
+            self.records.append({"env": env, "pre_rollout": start is not None, "first": episode.obs[0].copy(),
+                                 "elapsed": env.elapsed_steps, "observations": len(episode.obs)})
+            return episode
+
+        monkeypatch.setattr(trainer_module, "run_episode", run)
+
+
+def manual_pre_rollout(env, ckpt: dict, steps: int = PRE_STEPS):
+    """Reset, then the checkpoint's learner in eval mode, written out from the spec: (plain reset, result)."""
+    from drago.agent.agent import Agent
+    from drago.envs import env_spec
+    from drago.train.trainer import build_world_model
+
+    obs, _ = env.reset()
+    plain = obs.copy()
+    cfg = Config.from_dict(ckpt["config"])
+    world_model = build_world_model(cfg, env_spec("cheetah"), torch.device("cpu"))
+    world_model.load_state_dict(ckpt["world_model"])
+    agent = Agent(world_model, None, cfg.agent, discrete=False)
+    agent.heads.load_state_dict(ckpt["learner"])
+    agent.std_floor = ckpt["learner_std_floor"]  # as the learner planned at the end of its task
+    seed = int(env.np_random.integers(2**63))
+    saved = torch.get_rng_state()
+    torch.manual_seed(seed)
+    for t in range(steps):
+        obs = env.step(agent.act(obs, ckpt["steps"], eval_mode=True, first_step=t == 0))[0]
+    torch.set_rng_state(saved)
+    return plain, obs
+
+
+@pytest.fixture(scope="module")
+def cheetah_source(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("cheetah") / "drago"
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), *QUIET, *TINY_CHEETAH]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def jump2run(cheetah_source) -> dict:
+    """jump2run after stage 2, three learner episodes (DRAGO's reviewer on), every episode start logged."""
+    from drago.train.transfer import PreRollout
+
+    calls = {"n": 0}
+    original = PreRollout.__call__
+
+    def counted(self, env, task_step=0):
+        calls["n"] += 1
+        return original(self, env, task_step)
+
+    with pytest.MonkeyPatch.context() as m:
+        log = EpisodeLog(m)
+        m.setattr(PreRollout, "__call__", counted)
+        assert transfer(cheetah_source, "--task", "jump2run", "--after", "2", "--episodes", "3") == 0
+    return {"dir": cheetah_source / "transfer" / "jump2run-after2", "records": log.records,
+            "pre_rollouts": calls["n"]}
+
+
+@needs_dmc
+def test_x2y_transfer_config_names_its_pre_rollout_learner(jump2run, cheetah_source):
+    out = jump2run["dir"]
+    cfg = Config.from_dict(yaml.safe_load((out / "config.yaml").read_text()))
+    assert cfg.env.tasks == ("cheetah-run",) and cfg.transfer.case == "jump2run" and cfg.transfer.after == 2
+    jump = (cheetah_source / "checkpoints" / "task2_cheetah-jump.pt").resolve()
+    assert (out / cfg.transfer.checkpoint).resolve() == jump == (out / cfg.transfer.pre_rollout_checkpoint).resolve()
+    assert (cfg.transfer.pre_rollout_steps, cfg.transfer.pre_rollout_planning) == (PRE_STEPS, "source")
+    assert cfg.train.heldout_episodes == 0 and not (out / "heldout").exists()
+    t = json.loads((out / "summary.json").read_text())["transfer"]
+    assert t["case"] == "jump2run" and t["pre_rollout"]["steps"] == PRE_STEPS
+
+
+@needs_dmc
+def test_x2y_episodes_start_after_a_pre_rollout_that_is_not_counted(jump2run, cheetah_source):
+    records = jump2run["records"]
+    # An evaluation (one episode in the smoke preset) before training and after each of 3 learner episodes.
+    assert len(records) == 7
+    train_env = records[1]["env"]
+    kinds = ["train" if r["env"] is train_env else "eval" for r in records]
+    assert kinds == ["eval", "train", "eval", "train", "eval", "train", "eval"]
+    for r in records:
+        # The env ran the pre-rollout and then the episode; the episode holds only its own 20 steps.
+        assert r["pre_rollout"] and r["elapsed"] == PRE_STEPS + 20 and r["observations"] == 21
+    # Learner and evaluation episodes pre-roll; DRAGO's reviewer episodes start from a plain reset.
+    assert jump2run["pre_rollouts"] == 7
+    rows = read_csv(jump2run["dir"] / "train.csv")
+    assert [int(r["learner_step"]) for r in rows] == [20, 40, 60]  # pre-rollout steps are not counted
+    assert [int(r["step"]) for r in rows] == [40, 80, 120]  # learner + reviewer
+    t = json.loads((jump2run["dir"] / "summary.json").read_text())["transfer"]
+    assert t["learner_env_steps"] == 3 * 20 * 4 and t["total_env_steps"] == 2 * 3 * 20 * 4
+
+    # The first observations are what a pre-rollout written out by hand gives with the same seeds.
+    from drago.envs import make_env
+    from drago.train.trainer import task_seed
+
+    ckpt = load_checkpoint(cheetah_source / "checkpoints" / "task2_cheetah-jump.pt", kind="task")
+    env = make_env("cheetah", "cheetah-run", action_repeat=4)
+    env.reset(seed=task_seed(1, 0, 2))  # the transfer task's training env
+    plain, pre = manual_pre_rollout(env, ckpt)
+    assert not np.allclose(records[1]["first"], plain)
+    np.testing.assert_array_equal(records[1]["first"], pre)
+    env = make_env("cheetah", "cheetah-run", action_repeat=4)
+    env.reset(seed=task_seed(1, 0, 3, 0))  # the evaluation env at env step 0
+    plain, pre = manual_pre_rollout(env, ckpt)
+    assert not np.allclose(records[0]["first"], plain)
+    np.testing.assert_array_equal(records[0]["first"], pre)
+
+
+@needs_dmc
+def test_reset_test_tasks_have_no_pre_rollout(cheetah_source, tmp_path, monkeypatch):
+    log = EpisodeLog(monkeypatch)
+    out = tmp_path / "jump-and-run"
+    assert transfer(cheetah_source, "--task", "jump-and-run", "--after", "2", "--episodes", "1", "--out", str(out)) == 0
+    cfg = Config.from_dict(yaml.safe_load((out / "config.yaml").read_text()))
+    assert cfg.env.tasks == ("cheetah-jump-and-run",) and cfg.transfer.case == "jump-and-run"
+    assert cfg.transfer.pre_rollout_checkpoint is None
+    assert [(r["pre_rollout"], r["elapsed"]) for r in log.records] == [(False, 20)] * 3
+    from drago.envs import make_env
+    from drago.train.trainer import task_seed
+
+    env = make_env("cheetah", "cheetah-jump-and-run", action_repeat=4)
+    env.reset(seed=task_seed(1, 0, 2))
+    np.testing.assert_array_equal(log.records[1]["first"], env.reset()[0])
+
+
+@needs_dmc
+def test_x2y_transfer_is_deterministic_and_resumes_after_a_crash(jump2run, cheetah_source, tmp_path, monkeypatch):
+    args = ["--task", "jump2run", "--after", "2", "--episodes", "3"]
+    again, crashed = tmp_path / "again", tmp_path / "crashed"
+    assert transfer(cheetah_source, *args, "--out", str(again)) == 0
+    for name in ("train.csv", "eval.csv"):
+        assert (again / name).read_bytes() == (jump2run["dir"] / name).read_bytes(), name
+
+    original = Drago.gradient_step
+    calls = {"n": 0}
+
+    def crash_in_the_third_iteration(self, task, u):
+        calls["n"] += 1
+        if calls["n"] == 12:  # 5 updates per iteration; resume.pt was written after iterations 1 and 2
+            raise RuntimeError("simulated crash")
+        return original(self, task, u)
+
+    with monkeypatch.context() as m:
+        m.setattr(Drago, "gradient_step", crash_in_the_third_iteration)
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            transfer(cheetah_source, *args, "--out", str(crashed))
+    assert load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")["episodes"] == 2
+    assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
+    for name in ("train.csv", "eval.csv"):
+        assert (crashed / name).read_bytes() == (jump2run["dir"] / name).read_bytes(), name
+
+
+@needs_dmc
+def test_dmc_paper_cases_follow_table_1(cheetah_source, tmp_path):
+    out = tmp_path / "cases"
+    assert PAPER_CASES["cheetah"] == (("jump2run", 2), ("jump2back", 3), ("jump-and-run", 2), ("jump-and-back", 3))
+    assert transfer(cheetah_source, "--paper-cases", "--episodes", "1", "--out", str(out)) == 0
+    ckpts = cheetah_source / "checkpoints"
+    expected = {  # case: (target, world model after, pre-rollout learner)
+        "jump2run-after2": ("cheetah-run", "task2_cheetah-jump.pt", "task2_cheetah-jump.pt"),
+        "jump2back-after3": ("cheetah-run-backwards", "task3_cheetah-run-backwards.pt", "task2_cheetah-jump.pt"),
+        "jump-and-run-after2": ("cheetah-jump-and-run", "task2_cheetah-jump.pt", None),
+        "jump-and-back-after3": ("cheetah-jump-and-run-backwards", "task3_cheetah-run-backwards.pt", None),
+    }
+    assert sorted(p.name for p in out.iterdir()) == sorted(expected)
+    for case, (target, world, pre) in expected.items():
+        cfg = Config.from_dict(yaml.safe_load((out / case / "config.yaml").read_text()))
+        assert cfg.env.tasks == (target,) and cfg.transfer.case == case.rsplit("-after", 1)[0]
+        assert (out / case / cfg.transfer.checkpoint).resolve() == (ckpts / world).resolve()
+        if pre is None:
+            assert cfg.transfer.pre_rollout_checkpoint is None
+        else:
+            assert (out / case / cfg.transfer.pre_rollout_checkpoint).resolve() == (ckpts / pre).resolve()
+        assert json.loads((out / case / "summary.json").read_text())["complete"] is True
+
+
+@needs_dmc
+@pytest.mark.parametrize("planning", ["source", "code"])
+def test_pre_rollout_planning(cheetah_source, planning, monkeypatch):
+    """source: the learner's own end-of-task horizon and std floor; code: the official quirk (spec §1.2.5)."""
+    from drago.envs import make_env
+    from drago.train.transfer import PreRollout, load_learner
+
+    path = cheetah_source / "checkpoints" / "task2_cheetah-jump.pt"
+    ckpt = load_checkpoint(path, kind="task")
+    pre = PreRollout(load_learner(path), steps=3, planning=planning)
+    seen = []
+
+    def act(obs, step, eval_mode, first_step, bonus=None):
+        seen.append((step, eval_mode, first_step, pre.learner.agent.std_floor))
+        return np.zeros(6, dtype=np.float32)
+
+    monkeypatch.setattr(pre.learner.agent, "act", act)
+    env = make_env("cheetah", "cheetah-run", action_repeat=4)
+    env.reset(seed=0)
+    pre(env, task_step=7)
+    step, floor = (ckpt["steps"], ckpt["learner_std_floor"]) if planning == "source" else (7, 0.5)
+    assert seen == [(step, True, True, floor), (step, True, False, floor), (step, True, False, floor)]
+    assert env.elapsed_steps == 3
+
+
+@needs_dmc
+@pytest.mark.parametrize("case", ["unknown", "other-domain", "source-stage-missing", "paper-cases-partial"])
+def test_dmc_transfer_errors_are_one_line(cheetah_source, tmp_path, capsys, case):
+    source = cheetah_source
+    args = ["--task", "jump2run", "--after", "1", "--out", str(tmp_path / "t")]
+    if case == "unknown":
+        args[1] = "jump2walk"
+        expected = ("jump2walk", "test tasks: jump2run, jump2back", "cheetah-jump-and-run")
+    elif case == "other-domain":
+        args[1] = "walk2run"
+        expected = ("unknown task 'walk2run' for domain cheetah",)
+    else:
+        partial = tmp_path / "partial"
+        (partial / "checkpoints").mkdir(parents=True)
+        (partial / "config.yaml").write_bytes((source / "config.yaml").read_bytes())
+        (partial / "checkpoints" / "task1_cheetah-run.pt").write_bytes(
+            (source / "checkpoints" / "task1_cheetah-run.pt").read_bytes())
+        source = partial
+        if case == "source-stage-missing":
+            expected = ("task2_cheetah-jump.pt", "cheetah-jump learner", "finished stages: 1")
+        else:
+            args = ["--paper-cases"]
+            expected = ("stage 2", "finished stages: 1")
+    capsys.readouterr()
+    assert transfer(source, *args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("drago: error: ") and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for text in expected:
+        assert text in err, (text, err)

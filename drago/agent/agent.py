@@ -13,10 +13,29 @@ import numpy as np
 import torch
 
 from drago.agent.buffer import Batch
-from drago.agent.losses import model_losses, policy_loss
-from drago.agent.networks import TaskHeads, WorldModel, linear_schedule
-from drago.agent.planner import PlanSettings, RewardBonus, plan_continuous, plan_discrete
+from drago.agent.losses import model_losses, policy_loss, rollout
+from drago.agent.networks import TaskHeads, WorldModel, autocast, linear_schedule
+from drago.agent.planner import (
+    EAGER,
+    Evaluator,
+    PlanSettings,
+    RewardBonus,
+    imagine_step,
+    plan_continuous,
+    plan_discrete,
+    terminal_value,
+)
 from drago.config import AgentConfig
+
+
+def _float32_bonus(bonus: RewardBonus) -> RewardBonus:
+    """A count bonus evaluated outside autocast: classifier pseudo-counts divide by the small change of a
+    probability across one update, which bfloat16 would round away."""
+    def call(z: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(device_type=z.device.type, enabled=False):
+            return bonus(z.float())
+
+    return call
 
 
 class Agent:
@@ -47,6 +66,16 @@ class Agent:
         self.std_floor = cfg.std_schedule_start  # CEM std floor, advanced by updates only (spec §2.5)
         self._warm_mean: torch.Tensor | None = None
         self.device = device
+        # Optional torch.compile: the update's loss functions (their backward is compiled with them) and
+        # one step of the planner's trajectory evaluation. Optimizer steps stay eager.
+        self._model_losses, self._policy_loss, self._evaluator = model_losses, policy_loss, EAGER
+        if cfg.compile:
+            self._model_losses, self._policy_loss = torch.compile(model_losses), torch.compile(policy_loss)
+            self._evaluator = Evaluator(step=torch.compile(imagine_step), terminal=torch.compile(terminal_value))
+
+    def autocast(self):
+        """The context of this agent's forward passes: bfloat16 autocast when ``precision`` asks for it."""
+        return autocast(self.device, self.cfg.precision)
 
     # ------------------------------------------------------------------ acting
     def planning_horizon(self, step: int) -> int:
@@ -66,13 +95,17 @@ class Agent:
         """Plan one action for an observation (numpy in, numpy out)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         settings = self.plan_settings(step)
-        if self.discrete:
-            action = plan_discrete(self.world_model, self.heads, obs_t, settings, eval_mode, bonus)
-        else:
-            warm = None if first_step else self._warm_mean
-            action, self._warm_mean = plan_continuous(self.world_model, self.heads, obs_t, settings, eval_mode,
-                                                      warm, bonus)
-        return action.cpu().numpy()
+        if bonus is not None and self.cfg.precision != "float32":
+            bonus = _float32_bonus(bonus)
+        with self.autocast():
+            if self.discrete:
+                action = plan_discrete(self.world_model, self.heads, obs_t, settings, eval_mode, bonus,
+                                       self._evaluator)
+            else:
+                warm = None if first_step else self._warm_mean
+                action, self._warm_mean = plan_continuous(self.world_model, self.heads, obs_t, settings, eval_mode,
+                                                          warm, bonus, self._evaluator)
+        return action.cpu().numpy()  # the environment needs it on the host: the one sync per step
 
     def random_action(self, rng: np.random.Generator) -> np.ndarray:
         """Seed-phase action: a one-hot with the configured probabilities, or uniform in [-1, 1]."""
@@ -84,9 +117,14 @@ class Agent:
         return rng.uniform(-1.0, 1.0, size=n).astype(np.float32)
 
     # ---------------------------------------------------------------- learning
+    def rollout(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The world model's open-loop rollout z_0..z_H of these rows, with a graph (see :meth:`update`)."""
+        with self.autocast():
+            return rollout(self.world_model, obs, actions, self.cfg.horizon)
+
     def update(self, batch: Batch, step: int, train_world_model: bool = True, policy_rows: int | None = None,
-               curiosity_coef: float = 0.0,
-               world_model_loss: Callable[[], torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+               curiosity_coef: float = 0.0, world_model_loss: Callable[[], torch.Tensor] | None = None,
+               latents: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """One gradient step of spec §2.3 on a batch; returns metrics as tensors (no host sync).
 
         Args:
@@ -97,15 +135,18 @@ class Agent:
             curiosity_coef: prediction-error bonus inside the TD target (curiosity baseline).
             world_model_loss: an extra scalar loss on the world model, added to this step's objective
                 when the world model is trained (EWC penalty, replayed old transitions, joint rehearsal).
+            latents: this batch's :meth:`rollout` when the caller already has it: with its graph when
+                ``train_world_model``, detached otherwise (DRAGO shares one rollout between its agents).
         """
         c = self.cfg
         self.std_floor = linear_schedule(c.std_schedule_start, c.min_std, c.std_schedule_steps, step)
-        losses = model_losses(
-            self.world_model, self.heads, batch.obs, batch.actions, batch.rewards, batch.next_obs,
-            horizon=c.horizon, rho=c.rho, discount=c.discount, policy_std=c.min_std,
-            consistency_coef=c.consistency_coef, reward_coef=c.reward_coef, value_coef=c.value_coef,
-            first_step_qr_only=c.first_step_qr_only, train_world_model=train_world_model,
-            reviewer_priority=self.reviewer, curiosity_coef=curiosity_coef)
+        with self.autocast():
+            losses = self._model_losses(
+                self.world_model, self.heads, batch.obs, batch.actions, batch.rewards, batch.next_obs,
+                horizon=c.horizon, rho=c.rho, discount=c.discount, policy_std=c.min_std,
+                consistency_coef=c.consistency_coef, reward_coef=c.reward_coef, value_coef=c.value_coef,
+                first_step_qr_only=c.first_step_qr_only, train_world_model=train_world_model,
+                reviewer_priority=self.reviewer, curiosity_coef=curiosity_coef, latents=latents)
         # Scaling by 1/H is TD-MPC's gradient scaling, written on the loss.
         weighted = (batch.weights * losses.total).mean() / c.horizon
         extra = None
@@ -125,7 +166,8 @@ class Agent:
             self.world_optimizer.step()
 
         rows = batch.obs.shape[0] if policy_rows is None else policy_rows
-        pi_loss = policy_loss(self.heads, losses.latents[:, :rows], c.rho, c.min_std)
+        with self.autocast():
+            pi_loss = self._policy_loss(self.heads, losses.latents[:, :rows], c.rho, c.min_std)
         self.policy_optimizer.zero_grad(set_to_none=True)
         pi_params = list(self.heads.policy.parameters())
         grads = torch.autograd.grad(pi_loss, pi_params)

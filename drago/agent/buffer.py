@@ -1,9 +1,13 @@
 """Prioritized episode replay buffer (spec §2.4).
 
 The buffer stores fixed-length episodes and samples (H+1)-long sequences
-with prioritized experience replay. Priorities live in a vectorised numpy
-sum tree so that sampling and priority write-back cost O(B log N) instead of
-the O(N) of TD-MPC's dense ``probs = p**alpha / sum`` approach.
+with prioritized experience replay. On the CPU, priorities live in a
+vectorised numpy sum tree so that sampling and priority write-back cost
+O(B log N) instead of the O(N) of TD-MPC's dense ``probs = p**alpha / sum``
+approach. On an accelerator they stay on the device (:class:`DevicePriorities`):
+the next batch depends on the priorities the last update computed, and a host
+tree would make every gradient step wait for the device twice (priorities to
+the host, indices and weights back).
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import torch
 
 ArrayLike = np.ndarray | torch.Tensor
 
-__all__ = ["SumTree", "Batch", "EpisodeReplay"]
+__all__ = ["SumTree", "DevicePriorities", "Batch", "EpisodeReplay"]
 
 
 class SumTree:
@@ -145,6 +149,81 @@ class SumTree:
         self._max = float(state["max"])
 
 
+class DevicePriorities:
+    """PER leaf values as a dense float64 tensor on the buffer's device.
+
+    The same contract as :class:`SumTree` (leaf values, stratified prefix-sum
+    search that never returns a zero-valued leaf, last write wins for a
+    duplicated leaf) without a host round trip: a draw is one cumulative sum
+    over the leaves plus a binary search, both on the device, which is cheap
+    there even at a million leaves. Nothing here reads a value on the host.
+
+    Args:
+        capacity: Number of leaves.
+        device: Where the values live.
+    """
+
+    def __init__(self, capacity: int, device: torch.device) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self.capacity = int(capacity)
+        # One slot past the leaves receives the writes to drop (duplicates, ignored indices).
+        self._values = torch.zeros(self.capacity + 1, dtype=torch.float64, device=device)
+
+    def update(self, indices: torch.Tensor, values: torch.Tensor, keep: torch.Tensor | None = None) -> None:
+        """Set leaf values; with duplicated indices the last occurrence wins; ``keep`` masks writes out."""
+        idx = indices.reshape(-1)
+        vals = values.reshape(-1).to(torch.float64)
+        if idx.numel() == 0:
+            return
+        ordered, order = torch.sort(idx, stable=True)
+        last = torch.ones_like(ordered, dtype=torch.bool)
+        last[:-1] = ordered[1:] != ordered[:-1]
+        if keep is not None:
+            last &= keep.reshape(-1)[order]
+        # Every kept index is now unique, so the write is deterministic; the rest land in the spare slot.
+        self._values[torch.where(last, ordered, self.capacity)] = vals[order]
+
+    def values(self, indices: torch.Tensor) -> torch.Tensor:
+        return self._values[indices]
+
+    def leaves(self) -> torch.Tensor:
+        return self._values[: self.capacity]
+
+    def stratified(self, uniforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Draw one leaf in each of ``n`` equal segments of the total mass; returns (indices, probabilities).
+
+        Args:
+            uniforms: (n,) float64 numbers in [0, 1) on the device: the position inside each segment.
+        """
+        n = uniforms.shape[0]
+        cdf = torch.cumsum(self.leaves(), 0)
+        total = cdf[-1]
+        u = (torch.arange(n, dtype=torch.float64, device=cdf.device) + uniforms) * (total / n)
+        # Strictly below the total, so the search always lands on a leaf with a positive value.
+        u = torch.minimum(u, torch.nextafter(total, torch.zeros_like(total)))
+        idx = torch.searchsorted(cdf, u, right=True)
+        return idx, self._values[idx] / total
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"capacity": self.capacity, "leaves": self.leaves().detach().cpu().clone()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if int(state["capacity"]) != self.capacity:
+            raise ValueError(f"priority capacity mismatch: state {state['capacity']}, buffer {self.capacity}")
+        self._values.zero_()
+        self._values[: self.capacity] = torch.as_tensor(_leaves_of(state), dtype=torch.float64)
+
+
+def _leaves_of(state: dict[str, Any]) -> np.ndarray:
+    """Leaf values of a saved :class:`SumTree` or :class:`DevicePriorities` (a run resumed elsewhere)."""
+    if "leaves" in state:
+        return torch.as_tensor(state["leaves"], dtype=torch.float64).numpy()
+    tree = torch.as_tensor(state["tree"], dtype=torch.float64).numpy()
+    first = tree.shape[0] // 2
+    return tree[first : first + int(state["capacity"])]
+
+
 @dataclass
 class Batch:
     """A PER batch of (H+1)-long sequences.
@@ -155,8 +234,9 @@ class Batch:
         rewards: r_t for t = 0..H, shape (H+1, B).
         next_obs: s_{t+1} for t = 0..H, shape (H+1, B, obs_dim).
         weights: Normalised PER importance weights, shape (B,).
-        indices: Sampled start indices (numpy int64, shape (B,)) for
-            priority write-back.
+        indices: Sampled start indices, shape (B,), for priority write-back:
+            numpy int64 from a CPU buffer, an int64 tensor on the device from
+            a buffer with device priorities.
     """
 
     obs: torch.Tensor
@@ -164,7 +244,7 @@ class Batch:
     rewards: torch.Tensor
     next_obs: torch.Tensor
     weights: torch.Tensor
-    indices: np.ndarray
+    indices: np.ndarray | torch.Tensor
 
     @property
     def batch_size(self) -> int:
@@ -186,7 +266,8 @@ class Batch:
             rewards=torch.cat([self.rewards, other.rewards], dim=1),
             next_obs=torch.cat([self.next_obs, other.next_obs], dim=1),
             weights=torch.cat([self.weights, other.weights], dim=0),
-            indices=np.concatenate([self.indices, other.indices]),
+            indices=(torch.cat([self.indices, other.indices]) if isinstance(self.indices, torch.Tensor)
+                     else np.concatenate([self.indices, other.indices])),
         )
 
     def with_rewards(self, rewards: torch.Tensor) -> Batch:
@@ -223,6 +304,8 @@ class EpisodeReplay:
         alpha: PER priority exponent.
         beta: PER importance-weight exponent.
         device: Torch device for the stored tensors and returned batches.
+        device_priorities: keep priorities on ``device`` (:class:`DevicePriorities`)
+            instead of a host :class:`SumTree`; None: on any device but the CPU.
     """
 
     PRIORITY_EPS = 1e-6
@@ -237,6 +320,7 @@ class EpisodeReplay:
         alpha: float = 0.6,
         beta: float = 0.4,
         device: str | torch.device = "cpu",
+        device_priorities: bool | None = None,
     ) -> None:
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -268,8 +352,16 @@ class EpisodeReplay:
             self.capacity, self.act_dim, dtype=torch.float32, device=self.device
         )
         self._rewards = torch.zeros(self.capacity, dtype=torch.float32, device=self.device)
-        self._tree = SumTree(self.capacity)
-        self._max_priority = 1.0  # raw (pre-alpha) priority given to new transitions
+        if device_priorities is None:
+            device_priorities = self.device.type != "cpu"
+        self._tree: SumTree | DevicePriorities
+        if device_priorities:
+            self._tree = DevicePriorities(self.capacity, self.device)
+            # raw (pre-alpha) priority given to new transitions; a device scalar, never read in the hot loop
+            self._max_priority: float | torch.Tensor = torch.ones((), dtype=torch.float64, device=self.device)
+        else:
+            self._tree = SumTree(self.capacity)
+            self._max_priority = 1.0
         self._next_slot = 0
         self._num_episodes = 0
         self._steps = torch.arange(self.horizon + 1, device=self.device)
@@ -289,9 +381,14 @@ class EpisodeReplay:
         return self._num_episodes == self.max_episodes
 
     @property
+    def device_priorities(self) -> bool:
+        """Whether priorities live on the device (:class:`DevicePriorities`)."""
+        return isinstance(self._tree, DevicePriorities)
+
+    @property
     def max_priority(self) -> float:
         """Raw priority assigned to newly inserted transitions."""
-        return self._max_priority
+        return float(self._max_priority)
 
     # ---------------------------------------------------------------- insert
     def _as_tensor(self, x: ArrayLike, name: str, shape: tuple[int, ...]) -> torch.Tensor:
@@ -330,9 +427,14 @@ class EpisodeReplay:
         self._actions[start : start + L] = act_t
         self._rewards[start : start + L] = rew_t
 
-        prio = np.full(L, self._max_priority**self.alpha, dtype=np.float64)
-        prio[L - self.horizon :] = 0.0
-        self._tree.update(np.arange(start, start + L), prio)
+        if self.device_priorities:
+            prio = (self._max_priority**self.alpha).expand(L).clone()
+            prio[L - self.horizon :] = 0.0
+            self._tree.update(torch.arange(start, start + L, device=self.device), prio)
+        else:
+            prio = np.full(L, self._max_priority**self.alpha, dtype=np.float64)
+            prio[L - self.horizon :] = 0.0
+            self._tree.update(np.arange(start, start + L), prio)
 
         self._next_slot = (slot + 1) % self.max_episodes
         self._num_episodes = min(self._num_episodes + 1, self.max_episodes)
@@ -350,17 +452,28 @@ class EpisodeReplay:
         """
         if self._num_episodes == 0:
             raise ValueError("cannot sample from an empty buffer")
-        total = self._tree.total
-        segment = total / batch_size
-        u = (np.arange(batch_size) + rng.random(batch_size)) * segment
-        idx = self._tree.find(u)
+        if self.device_priorities:
+            # The same uniforms as the host path, copied without waiting for queued device work.
+            uniforms = torch.from_numpy(rng.random(batch_size))
+            if self.device.type == "cuda":
+                uniforms = uniforms.pin_memory()
+            idx, probs = self._tree.stratified(uniforms.to(self.device, non_blocking=True))
+            weights = (len(self) * probs) ** (-self.beta)
+            weights = (weights / weights.max()).to(torch.float32)
+            starts = idx
+        else:
+            total = self._tree.total
+            segment = total / batch_size
+            u = (np.arange(batch_size) + rng.random(batch_size)) * segment
+            idx = self._tree.find(u)
 
-        probs = self._tree.values(idx) / total
-        weights = (len(self) * probs) ** (-self.beta)
-        weights /= weights.max()
+            probs = self._tree.values(idx) / total
+            weights = (len(self) * probs) ** (-self.beta)
+            weights /= weights.max()
+            weights = torch.as_tensor(weights, dtype=torch.float32, device=self.device)
+            starts = torch.as_tensor(idx, dtype=torch.long, device=self.device)
 
         L = self.episode_length
-        starts = torch.as_tensor(idx, dtype=torch.long, device=self.device)
         seq = starts.unsqueeze(0) + self._steps.unsqueeze(1)  # (H+1, B): t = 0..H
         nxt = seq + 1
         episode = starts // L
@@ -377,7 +490,7 @@ class EpisodeReplay:
             actions=self._actions[seq],
             rewards=self._rewards[seq],
             next_obs=next_obs,
-            weights=torch.as_tensor(weights, dtype=torch.float32, device=self.device),
+            weights=weights,
             indices=idx,
         )
 
@@ -411,6 +524,9 @@ class EpisodeReplay:
             indices: Start indices from :attr:`Batch.indices`, shape (n,).
             priorities: Non-negative raw priorities, shape (n,).
         """
+        if self.device_priorities:
+            self._update_device_priorities(indices, priorities)
+            return
         if isinstance(indices, torch.Tensor):
             indices = indices.detach().cpu().numpy()
         if isinstance(priorities, torch.Tensor):
@@ -428,8 +544,26 @@ class EpisodeReplay:
         self._tree.update(idx, p**self.alpha)
         self._max_priority = max(self._max_priority, float(p.max()))
 
+    def _update_device_priorities(self, indices: ArrayLike, priorities: ArrayLike) -> None:
+        """:meth:`update_priorities` without a host read: masks instead of filtering, an async check."""
+        idx = torch.as_tensor(indices, dtype=torch.long, device=self.device).reshape(-1)
+        p = torch.as_tensor(priorities, device=self.device).detach().to(torch.float64).reshape(-1)
+        if idx.shape != p.shape:
+            raise ValueError(f"indices {tuple(idx.shape)} and priorities {tuple(p.shape)} differ in shape")
+        if idx.numel() == 0:
+            return
+        # Raises at once on the CPU; on a GPU a failure surfaces at a later kernel launch.
+        torch._assert_async(torch.all(torch.isfinite(p) & (p >= 0)), "priorities must be finite and non-negative")
+        keep = (idx % self.episode_length) < self.episode_length - self.horizon
+        p = p + self.PRIORITY_EPS
+        self._tree.update(idx, p**self.alpha, keep)
+        self._max_priority = torch.maximum(self._max_priority, torch.where(keep, p, 0.0).max())
+
     def priorities(self, indices: ArrayLike) -> np.ndarray:
         """Return the stored tree values ``p ** alpha`` for ``indices``."""
+        if self.device_priorities:
+            idx = torch.as_tensor(indices, dtype=torch.long, device=self.device)
+            return self._tree.values(idx).cpu().numpy()
         return self._tree.values(np.asarray(indices, dtype=np.int64))
 
     # ------------------------------------------------------------ checkpoint
@@ -448,7 +582,7 @@ class EpisodeReplay:
             "actions": self._actions.detach().cpu().clone(),
             "rewards": self._rewards.detach().cpu().clone(),
             "tree": self._tree.state_dict(),
-            "max_priority": self._max_priority,
+            "max_priority": float(self._max_priority),
             "next_slot": self._next_slot,
             "num_episodes": self._num_episodes,
         }
@@ -469,7 +603,16 @@ class EpisodeReplay:
         self._last_obs.copy_(state["last_obs"])
         self._actions.copy_(state["actions"])
         self._rewards.copy_(state["rewards"])
-        self._tree.load_state_dict(state["tree"])
-        self._max_priority = float(state["max_priority"])
+        tree = state["tree"]
+        if self.device_priorities:
+            self._tree.load_state_dict(tree)
+            self._max_priority = torch.tensor(float(state["max_priority"]), dtype=torch.float64, device=self.device)
+        elif "leaves" in tree:  # saved with device priorities
+            self._tree = SumTree(self.capacity)
+            self._tree.update(np.arange(self.capacity), _leaves_of(tree))
+            self._max_priority = float(state["max_priority"])
+        else:
+            self._tree.load_state_dict(tree)
+            self._max_priority = float(state["max_priority"])
         self._next_slot = int(state["next_slot"])
         self._num_episodes = int(state["num_episodes"])

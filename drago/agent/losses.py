@@ -45,11 +45,24 @@ def rho_weights(rho: float, steps: int, like: torch.Tensor) -> torch.Tensor:
     return rho ** torch.arange(steps, dtype=like.dtype, device=like.device)
 
 
+def rollout(world_model: WorldModel, obs: torch.Tensor, actions: torch.Tensor, horizon: int) -> torch.Tensor:
+    """(H+1, B, n_z) latents z_0 = h(s_0), z_{t+1} = d(z_t, a_t): the open-loop model rollout of §2.3.
+
+    Built with a graph when gradients are enabled, so the consistency loss can train the dynamics.
+    """
+    z = world_model.encode(obs)
+    latents = [z]
+    for t in range(horizon):
+        z = world_model(z, actions[t])
+        latents.append(z)
+    return torch.stack(latents)
+
+
 def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, actions: torch.Tensor,
                  rewards: torch.Tensor, next_obs: torch.Tensor, *, horizon: int, rho: float, discount: float,
                  policy_std: float, consistency_coef: float, reward_coef: float, value_coef: float,
                  first_step_qr_only: bool, train_world_model: bool, reviewer_priority: bool = False,
-                 curiosity_coef: float = 0.0) -> ModelLosses:
+                 curiosity_coef: float = 0.0, latents: torch.Tensor | None = None) -> ModelLosses:
     """Consistency, reward and value losses of one agent on one batch (spec §2.3 steps 1-3).
 
     Args:
@@ -61,14 +74,17 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
         reviewer_priority: use the reviewer's priority r + 2 + |TD errors| instead of |TD errors|.
         curiosity_coef: c in the TD target's reward r + c * e_t, with e_t the open-loop prediction error
             of the current model (spec §2.3; the curiosity baseline). The reward head still fits r.
+        latents: the :func:`rollout` of these rows when the caller already has it (with a graph if
+            ``train_world_model``): DRAGO rolls the world model once over reviewer and learner rows and
+            hands each update its rows, since the learner's update does not change the world model.
     """
-    z = world_model.encode(obs)
-    latents = [z]
-    with torch.set_grad_enabled(train_world_model and torch.is_grad_enabled()):
-        for t in range(horizon):
-            z = world_model(z, actions[t])
-            latents.append(z)
-    predicted = torch.stack(latents[1:])  # (H, B, n) with graph when training the world model
+    if latents is None:
+        with torch.set_grad_enabled(train_world_model and torch.is_grad_enabled()):
+            latents = rollout(world_model, obs, actions, horizon)
+    elif latents.shape[:2] != (horizon + 1, obs.shape[0]):
+        raise ValueError(f"latents of shape {tuple(latents.shape)} do not match horizon {horizon} and "
+                         f"batch {obs.shape[0]}")
+    predicted = latents[1:]  # (H, B, n) with graph when training the world model
     targets = world_model.encode(next_obs[:horizon])
     rho_t = rho_weights(rho, horizon, obs)
     batch = obs.shape[0]
@@ -81,7 +97,7 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
         consistency = obs.new_zeros(batch)
         score = obs.new_zeros(())
 
-    z_in = torch.stack(latents[:horizon]).detach()  # z_t for t < H (z_0 real, later ones imagined)
+    z_in = latents[:horizon].detach()  # z_t for t < H (z_0 real, later ones imagined)
     step_actions = actions[:horizon]
     with torch.no_grad():
         next_z = targets.detach()
@@ -114,7 +130,7 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
              + reward_coef * reward_loss.clamp(max=LOSS_CLAMP)
              + value_coef * value_loss.clamp(max=LOSS_CLAMP))
     return ModelLosses(consistency=consistency, reward=reward_loss, value=value_loss, total=total,
-                       priority=priority, latents=torch.stack(latents).detach(), prediction_score=score)
+                       priority=priority, latents=latents.detach(), prediction_score=score)
 
 
 def policy_loss(heads: TaskHeads, latents: torch.Tensor, rho: float, policy_std: float) -> torch.Tensor:

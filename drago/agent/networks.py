@@ -7,14 +7,43 @@ learner and reviewer are two ``TaskHeads`` over one ``WorldModel``.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from drago.config import PRECISIONS
+
 # The dynamics output is clamped before squashing, as in the official code.
 DYNAMICS_CLAMP = 100.0
+
+
+def autocast(device: torch.device | str, precision: str) -> contextlib.AbstractContextManager:
+    """The agent's reduced-precision context: bfloat16 autocast, or nothing for float32.
+
+    Under it the hidden layers run in bfloat16 while every network's output layer stays in float32
+    (:func:`_float32_output`), so predicted states, rewards and Q values, and with them the losses and
+    TD targets built from them, keep float32 precision. Backward passes run outside the context.
+    """
+    if precision == "float32":
+        return contextlib.nullcontext()
+    if precision != "bfloat16":
+        raise ValueError(f"unknown precision '{precision}'; valid: {', '.join(PRECISIONS)}")
+    return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
+
+
+def _float32_output(x: torch.Tensor, layer) -> torch.Tensor:
+    """Apply an output layer in float32 even under autocast.
+
+    A bfloat16 output keeps 8 significant bits: a Q value near 200 would be rounded to a multiple of 1,
+    a value of the order of the TD errors the critics must fit. The layer's FLOPs are negligible.
+    """
+    if torch.is_autocast_enabled(x.device.type):
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            return layer(x.float())
+    return layer(x)
 
 
 class CReLU(nn.Module):
@@ -22,6 +51,13 @@ class CReLU(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.cat((F.relu(x), F.relu(-x)), dim=-1)
+
+
+class OutputLinear(nn.Linear):
+    """The last layer of a network: an ``nn.Linear`` that computes in float32 under autocast."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return _float32_output(x, super().forward)
 
 
 def _init_linear(layer: nn.Linear, zero: bool = False) -> None:
@@ -41,7 +77,7 @@ def mlp(in_dim: int, hidden: int, out_dim: int, act: str = "elu", zero_last: boo
     """
     width = 2 * hidden if act == "crelu" else hidden
     make_act = CReLU if act == "crelu" else nn.ELU
-    layers = [nn.Linear(in_dim, hidden), make_act(), nn.Linear(width, hidden), make_act(), nn.Linear(width, out_dim)]
+    layers = [nn.Linear(in_dim, hidden), make_act(), nn.Linear(width, hidden), make_act(), OutputLinear(width, out_dim)]
     for i, layer in enumerate(layers):
         if isinstance(layer, nn.Linear):
             _init_linear(layer, zero=zero_last and i == len(layers) - 1)
@@ -87,10 +123,15 @@ class WorldModel(nn.Module):
 
 
 class EnsembleLinear(nn.Module):
-    """``n`` independent linear layers evaluated as one batched matmul."""
+    """``n`` independent linear layers evaluated as one batched matmul.
 
-    def __init__(self, n: int, in_dim: int, out_dim: int, zero: bool = False):
+    Args:
+        output: the network's last layer, computed in float32 under autocast (see :class:`OutputLinear`).
+    """
+
+    def __init__(self, n: int, in_dim: int, out_dim: int, zero: bool = False, output: bool = False):
         super().__init__()
+        self.output = output
         self.weight = nn.Parameter(torch.empty(n, in_dim, out_dim))
         self.bias = nn.Parameter(torch.zeros(n, 1, out_dim))
         for i in range(n):
@@ -103,6 +144,9 @@ class EnsembleLinear(nn.Module):
                 self.weight.data[i] = w.t()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return _float32_output(x, self._forward) if self.output else self._forward(x)
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
         # x: (n, rows, in) or (rows, in) broadcast to every member.
         if x.dim() == 2:
             return torch.baddbmm(self.bias, x.unsqueeze(0).expand(self.weight.shape[0], -1, -1), self.weight)
@@ -118,7 +162,7 @@ class TwinQ(nn.Module):
         self.ln_weight = nn.Parameter(torch.ones(2, 1, mlp_dim))
         self.ln_bias = nn.Parameter(torch.zeros(2, 1, mlp_dim))
         self.l2 = EnsembleLinear(2, mlp_dim, mlp_dim)
-        self.l3 = EnsembleLinear(2, mlp_dim, 1, zero=True)
+        self.l3 = EnsembleLinear(2, mlp_dim, 1, zero=True, output=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Returns (2, rows) values for inputs of shape (rows, in_dim)."""

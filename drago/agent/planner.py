@@ -35,10 +35,36 @@ class PlanSettings:
     elite_selection: str  # "sample" or "argmax"
 
 
+def imagine_step(world_model: WorldModel, heads: TaskHeads, z: torch.Tensor,
+                 action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(predicted reward r(z, a), predicted next latent d(z, a)): one step of a trajectory's evaluation."""
+    return heads.predict_reward(z, action), world_model(z, action)
+
+
+def terminal_value(heads: TaskHeads, z: torch.Tensor, policy_std: float) -> torch.Tensor:
+    """min(Q1, Q2)(z, pi(z, std)): the value of a trajectory's last latent."""
+    return heads.q_values(z, heads.act(z, policy_std)).min(0).values
+
+
+@dataclass(frozen=True)
+class Evaluator:
+    """The two functions a trajectory's evaluation calls; the agent swaps in compiled versions.
+
+    One step is compiled rather than the whole horizon loop: the planning horizon grows with the
+    schedule (1 -> H), and a compiled loop would be recompiled for every horizon.
+    """
+
+    step: Callable[..., tuple[torch.Tensor, torch.Tensor]] = imagine_step
+    terminal: Callable[..., torch.Tensor] = terminal_value
+
+
+EAGER = Evaluator()
+
+
 @torch.no_grad()
 def trajectory_returns(world_model: WorldModel, heads: TaskHeads, z0: torch.Tensor, actions: torch.Tensor,
                        discount: float, use_q: bool, policy_std: float,
-                       bonus: RewardBonus | None = None) -> torch.Tensor:
+                       bonus: RewardBonus | None = None, evaluator: Evaluator = EAGER) -> torch.Tensor:
     """G = sum_t gamma^t r_t + gamma^h min Q(z_h, pi(z_h)) for each of N action sequences.
 
     Args:
@@ -50,14 +76,13 @@ def trajectory_returns(world_model: WorldModel, heads: TaskHeads, z0: torch.Tens
     total = z.new_zeros(count)
     scale = 1.0
     for t in range(horizon):
-        reward = heads.predict_reward(z, actions[t])
-        z = world_model(z, actions[t])
+        reward, z = evaluator.step(world_model, heads, z, actions[t])
         if bonus is not None:
             reward = torch.where(reward >= 0, reward * bonus(z), reward)
         total = total + scale * reward
         scale *= discount
     if use_q:
-        total = total + scale * heads.q_values(z, heads.act(z, policy_std)).min(0).values
+        total = total + scale * evaluator.terminal(heads, z, policy_std)
     return torch.nan_to_num(total, nan=0.0)
 
 
@@ -89,15 +114,18 @@ def _elite_weights(returns: torch.Tensor, num_elites: int, temperature: float) -
     return weights, elite_idx
 
 
-def _choose_elite(weights: torch.Tensor, selection: str) -> torch.Tensor:
-    if selection == "argmax":
-        return weights.argmax()
-    return torch.multinomial(weights, 1)[0]
+def _chosen_elite(elites: torch.Tensor, weights: torch.Tensor, selection: str) -> torch.Tensor:
+    """The first action of one elite sequence: the best, or one drawn in proportion to its weight.
+
+    Indexed with a one-element tensor, so a GPU never waits for the host to read the choice.
+    """
+    choice = weights.argmax().view(1) if selection == "argmax" else torch.multinomial(weights, 1)
+    return elites[0].index_select(0, choice)[0]
 
 
 @torch.no_grad()
 def plan_discrete(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, s: PlanSettings,
-                  eval_mode: bool, bonus: RewardBonus | None = None) -> torch.Tensor:
+                  eval_mode: bool, bonus: RewardBonus | None = None, evaluator: Evaluator = EAGER) -> torch.Tensor:
     """Categorical CEM over one-hot sequences; returns the first one-hot action of a chosen elite.
 
     The categorical mean starts uniform (1/|A|; the official code's 1/h is a bug, spec §7.2.18).
@@ -112,18 +140,19 @@ def plan_discrete(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, 
         actions = F.one_hot(idx, n_a).to(obs.dtype)
         if pi_actions is not None:
             actions = torch.cat((actions, pi_actions), dim=1)
-        returns = trajectory_returns(world_model, heads, z0, actions, s.discount, s.use_q, s.policy_std, bonus)
+        returns = trajectory_returns(world_model, heads, z0, actions, s.discount, s.use_q, s.policy_std, bonus,
+                                     evaluator)
         weights, elite_idx = _elite_weights(returns, s.num_elites, s.temperature)
         elites = actions[:, elite_idx]  # (h, k, n_a)
         refit = (weights[None, :, None] * elites).sum(1)
         mean = s.momentum * mean + (1 - s.momentum) * refit
-    return elites[0, _choose_elite(weights, s.elite_selection)]
+    return _chosen_elite(elites, weights, s.elite_selection)
 
 
 @torch.no_grad()
 def plan_continuous(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, s: PlanSettings,
-                    eval_mode: bool, warm_mean: torch.Tensor | None,
-                    bonus: RewardBonus | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                    eval_mode: bool, warm_mean: torch.Tensor | None, bonus: RewardBonus | None = None,
+                    evaluator: Evaluator = EAGER) -> tuple[torch.Tensor, torch.Tensor]:
     """Gaussian CEM with momentum; returns (action, mean to warm-start the next step's plan).
 
     The executed action is clipped to [-1, 1] after exploration noise, so the buffer stores what the
@@ -143,14 +172,15 @@ def plan_continuous(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor
         actions = (mean[:, None] + std[:, None] * noise).clamp(-1, 1)
         if pi_actions is not None:
             actions = torch.cat((actions, pi_actions), dim=1)
-        returns = trajectory_returns(world_model, heads, z0, actions, s.discount, s.use_q, s.policy_std, bonus)
+        returns = trajectory_returns(world_model, heads, z0, actions, s.discount, s.use_q, s.policy_std, bonus,
+                                     evaluator)
         weights, elite_idx = _elite_weights(returns, s.num_elites, s.temperature)
         elites = actions[:, elite_idx]
         refit_mean = (weights[None, :, None] * elites).sum(1)
         refit_std = (weights[None, :, None] * (elites - refit_mean[:, None]).pow(2)).sum(1).sqrt()
         mean = s.momentum * mean + (1 - s.momentum) * refit_mean
         std = refit_std.clamp(s.min_std, s.max_std)
-    action = elites[0, _choose_elite(weights, s.elite_selection)]
+    action = _chosen_elite(elites, weights, s.elite_selection)
     if not eval_mode:
         action = action + std[0] * torch.randn_like(action)
     return action.clamp(-1, 1), mean

@@ -149,13 +149,18 @@ class Drago(ContinualMethod):
             metrics.update({f"learner_{k}": v for k, v in out.items()})
             vae_rows = learner_batch
         else:
-            out = task.learner.update(learner_batch, u, train_world_model=False)
-            task.buffer.update_priorities(learner_batch.indices, out.pop("priority"))
-            metrics.update({f"learner_{k}": v for k, v in out.items()})
             reviewer_batch = self.reviewer_buffer.sample(B, task.rng)
             # Reviewer rows first: the policy loss and priorities use only them (spec §3.6).
             combined = reviewer_batch.concat(learner_batch.with_rewards(self._relabel(learner_batch)))
-            out = self.reviewer.update(combined, u, train_world_model=True, policy_rows=B, world_model_loss=joint)
+            # One world-model rollout, with its graph, over all 2B rows feeds both updates: the learner's
+            # update (first, as in the official order) does not change the world model, so its rows' latents
+            # are exactly those its own no-grad rollout would give. The reviewer's backward then trains it.
+            latents = self.reviewer.rollout(combined.obs, combined.actions)
+            out = task.learner.update(learner_batch, u, train_world_model=False, latents=latents[:, B:].detach())
+            task.buffer.update_priorities(learner_batch.indices, out.pop("priority"))
+            metrics.update({f"learner_{k}": v for k, v in out.items()})
+            out = self.reviewer.update(combined, u, train_world_model=True, policy_rows=B, world_model_loss=joint,
+                                       latents=latents)
             self.reviewer_buffer.update_priorities(reviewer_batch.indices, out.pop("priority"))
             self._track_threshold(out["mean_prediction_score"])
             metrics.update({f"reviewer_{k}": v for k, v in out.items()})
@@ -182,7 +187,10 @@ class Drago(ContinualMethod):
         sample = self.old_vae.sample(self.cfg.method.rehearsal_batch)
         states, actions = sample.split((self.spec.obs_dim, self.spec.action_dim), dim=-1)
         # Generated pairs are used raw (no one-hot projection), as in the official code (spec §3.12 #24).
-        return rehearsal_loss(task.world_model, self.old_world_model, states, actions, self.cfg.method.rehearsal_target)
+        # The dynamics run in the agent's precision; the small VAE and the intrinsic reward stay float32.
+        with task.learner.autocast():
+            return rehearsal_loss(task.world_model, self.old_world_model, states, actions,
+                                  self.cfg.method.rehearsal_target)
 
     def _vae_step(self, rows: Batch) -> dict[str, torch.Tensor]:
         m = self.cfg.method

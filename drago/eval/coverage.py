@@ -53,6 +53,7 @@ __all__ = [
     "room_of",
     "run_checkpoints",
     "write_coverage_csv",
+    "write_rows_csv",
 ]
 
 GRID_DOMAIN = "minigrid"
@@ -300,15 +301,17 @@ def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, 
 
 
 def write_coverage_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
-    """Write coverage rows (columns :data:`CSV_COLUMNS`) to ``path``, replacing it atomically.
+    """Write coverage rows (columns :data:`CSV_COLUMNS`) to ``path``, replacing it atomically."""
+    return write_rows_csv(rows, CSV_COLUMNS, path)
 
-    Floats are written with ``repr`` so the file reads back bit-exactly.
-    """
+
+def write_rows_csv(rows: list[dict[str, Any]], columns: tuple[str, ...], path: str | Path) -> Path:
+    """Write measurement rows to ``path`` atomically; floats as ``repr`` so the file reads back bit-exactly."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     with tmp.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(CSV_COLUMNS), extrasaction="ignore")
+        writer = csv.DictWriter(handle, fieldnames=list(columns), extrasaction="ignore")
         writer.writeheader()
         for row in rows:
             writer.writerow({k: repr(v) if isinstance(v, float) and math.isfinite(v) else v for k, v in row.items()})

@@ -148,7 +148,7 @@ def _read_summary(path: Path) -> dict[str, Any] | None:
     return data
 
 
-def _read_eval(path: Path) -> list[dict[str, str]]:
+def _read_eval(path: Path, required: Sequence[str] = EVAL_COLUMNS) -> list[dict[str, str]]:
     file = path / EVAL_FILE
     if not file.exists():
         return []
@@ -159,7 +159,7 @@ def _read_eval(path: Path) -> list[dict[str, str]]:
             columns = reader.fieldnames or []
     except (OSError, UnicodeDecodeError, csv.Error) as err:
         raise ReportError(f"{file} is not a readable CSV file ({err})") from None
-    missing = [c for c in EVAL_COLUMNS if c not in columns]
+    missing = [c for c in required if c not in columns]
     if missing:
         raise ReportError(f"{file} lacks the column(s) {', '.join(missing)}")
     return rows
@@ -177,7 +177,9 @@ def read_run(path: str | Path) -> Run:
         cfg = read_run_config(path)
     except OSError as err:
         raise ReportError(f"{path / CONFIG_FILE} is not readable ({err.strerror or err})") from None
-    return Run(path=path, cfg=cfg, summary=_read_summary(path), eval_rows=_read_eval(path))
+    # DeepMind Control tasks have no known optimum, so their eval.csv has no fraction_of_optimal.
+    required = EVAL_COLUMNS if cfg.env.domain == GRID_DOMAIN else EVAL_COLUMNS[:2]
+    return Run(path=path, cfg=cfg, summary=_read_summary(path), eval_rows=_read_eval(path, required))
 
 
 def _number(value: Any) -> float:
@@ -383,13 +385,67 @@ def _metrics_table(groups: dict[str, list[Run]], coverage: dict[Path, list[dict[
                  ("method", "stages T", "seeds", "ACC", "BWT", "forgetting"), rows)
 
 
+def _retention_rows(run: Run, findings: _Findings) -> list[dict[str, Any]]:
+    """A DeepMind Control run's retention rows from its held-out sets on disk (none is recorded here)."""
+    from drago.eval.heldout import HeldoutError, heldout_checkpoints, heldout_path, retention_matrix
+
+    if run.cfg.env.domain == GRID_DOMAIN:
+        return []
+    try:
+        _, checkpoints = heldout_checkpoints(run.path)
+    except HeldoutError:
+        return []  # no finished task: reported with the incomplete runs
+    missing = [c.task for c in checkpoints if not heldout_path(run.path, c.stage, c.task).is_file()]
+    if missing:
+        why = ("it was trained with train.heldout_episodes=0" if run.cfg.train.heldout_episodes == 0
+               else f"`drago eval heldout {run.path}` records them from the checkpoints")
+        findings.missing.append(f"{run.path}: no held-out set for {', '.join(missing)}, so the retention matrix "
+                                f"lacks {'that column' if len(missing) == 1 else 'those columns'} ({why})")
+    return retention_matrix(run.path) if len(missing) < len(checkpoints) else []
+
+
+def _retention_tables(groups: dict[str, list[Run]], findings: _Findings) -> list[Table]:
+    """The retention matrix of DeepMind Control runs (method x stage x held-out set), score and error."""
+    rows = {run.path: _retention_rows(run, findings) for runs in groups.values() for run in runs}
+    if not any(rows.values()):
+        return []
+    tasks: list[str] = []
+    for row in sorted((r for run_rows in rows.values() for r in run_rows), key=lambda r: r["task_stage"]):
+        if row["task"] not in tasks:
+            tasks.append(row["task"])
+    score_rows, error_rows = [], []
+    for label, runs in groups.items():
+        cells: dict[tuple[int, str], dict[str, list[tuple[float, float]]]] = {}
+        seeds: dict[tuple[int, str], set[Path]] = {}
+        for run in runs:
+            for r in rows[run.path]:
+                key = (int(r["stage"]), r["stage_task"])
+                cells.setdefault(key, {}).setdefault(r["task"], []).append((r["score"], r["error"]))
+                seeds.setdefault(key, set()).add(run.path)
+        for key in sorted(cells):
+            stage = f"{key[0]}: {key[1]}"
+            values = [cells[key].get(task, []) for task in tasks]
+            score_rows.append((label, stage, str(len(seeds[key])), *(_fmt([v[0] for v in vs])[0] for vs in values)))
+            error_rows.append((label, stage, str(len(seeds[key])),
+                               *(summarize([v[1] for v in vs]).format(4) for vs in values)))
+    columns = ("method", "after stage", "seeds", *tasks)
+    what = ("the world model saved after each stage (rows) on the held-out transitions of each task (columns), "
+            "recorded at the end of that task by its final learner in eval mode and never trained on")
+    return [Table("retention", "World-model retention (held-out transitions)",
+                  f"Prediction score −log(MSE + ε), higher is better, of {what}. Mean ± std [95% CI] over seeds.",
+                  columns, score_rows),
+            Table("retention-error", "World-model prediction error (held-out transitions)",
+                  f"Mean squared one-step prediction error per state dimension (the training consistency error) of "
+                  f"{what}. Mean ± std [95% CI] over seeds.", columns, error_rows)]
+
+
 def _curves_png(groups: dict[str, list[Run]], tasks: list[str]) -> bytes | None:
     """Fraction of optimum vs env step, one panel per task, one line per method with its 95% CI band."""
     series: dict[tuple[str, str], dict[int, list[float]]] = {}
     for label, runs in groups.items():
         for run in runs:
             for row in run.eval_rows:
-                value = _number(row["fraction_of_optimal"])
+                value = _number(row.get("fraction_of_optimal"))
                 step = _number(row["env_step"])
                 if math.isfinite(value) and math.isfinite(step):
                     series.setdefault((label, row["task"]), {}).setdefault(int(step), []).append(value)
@@ -600,6 +656,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
                                "during each task: the mean over seeds with its 95% bootstrap CI as a band "
                                "(no band for a single seed).", curves, CURVES_PNG))
     sections += [_coverage_table(groups, coverage), _metrics_table(groups, coverage, findings)]
+    sections += _retention_tables(groups, findings)  # DeepMind Control runs only
     heatmap = _heatmap(groups)
     if heatmap is not None:
         sections.append(Figure("heatmap", "World-model prediction score", "Per-cell prediction score of the "

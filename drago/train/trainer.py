@@ -39,9 +39,13 @@ class Episode:
         return float(self.rewards.sum())
 
 
-def run_episode(env, length: int, choose_action) -> Episode:
-    """Roll one fixed-length episode; ``choose_action(obs, t)`` returns the action to take."""
-    obs, _ = env.reset()
+def run_episode(env, length: int, choose_action, start=None) -> Episode:
+    """Roll one fixed-length episode; ``choose_action(obs, t)`` returns the action to take.
+
+    ``start(env)`` begins the episode and returns its first observation (None: ``env.reset()``); a
+    transfer's pre-rollout (spec §1.2.5) is such a start, whose steps are not part of the episode.
+    """
+    obs = env.reset()[0] if start is None else start(env)
     observations, actions, rewards = [obs], [], []
     for t in range(length):
         action = choose_action(obs, t)
@@ -77,6 +81,7 @@ class Trainer:
         self.device = device
         self.progress = progress
         self.ckpt_dir = run_dir / "checkpoints"
+        self._pre_rollout = None  # built on first use (transfer.pre_rollout_checkpoint)
 
     # ---- paths and bookkeeping -------------------------------------------------------------
     def task_checkpoint(self, index: int) -> Path:
@@ -115,6 +120,8 @@ class Trainer:
         """Train every task not yet finished, resuming a task in progress; returns the summary."""
         cfg = self.cfg
         start = self.completed_tasks()
+        for index in range(start):
+            self.record_heldout(index)  # a finished task without its set: a run older than held-out sets
         per_task = Budget.from_config(cfg).max_steps
         bar = tqdm(total=per_task * len(cfg.env.tasks), initial=start * per_task, unit="step", dynamic_ncols=True,
                    disable=None if self.progress else True, desc="drago")  # None: hide when not a terminal
@@ -190,7 +197,7 @@ class Trainer:
                     return learner.random_action(rng)
                 return learner.act(obs, step, eval_mode=False, first_step=t == 0)
 
-            episode = run_episode(env, L, choose)
+            episode = run_episode(env, L, choose, self.episode_start(step))
             buffer.add_episode(episode.obs, episode.actions, episode.rewards)
             task.step += L
             task.learner_steps += L
@@ -227,13 +234,15 @@ class Trainer:
                 self._save_resume(task, env, time.perf_counter() - started, last_eval_env, last_ckpt_env, last_eval)
 
         self.method.end_task(task)
+        # Before the task checkpoint: a crash in between redoes the end of the task, and this set with it.
+        self.record_heldout(index, learner, task.step)
         wall = time.perf_counter() - started
         save_checkpoint(self.task_checkpoint(index), {
             "task_index": index, "task": name, "config": cfg.to_dict(),
             "world_model": task.world_model.state_dict(),
             "method": self.method.carry_state(),
             # The learner's heads are kept for pre-rollouts and inspection; chaining never reads them.
-            "learner": learner.heads.state_dict(),
+            "learner": learner.heads.state_dict(), "learner_std_floor": float(learner.std_floor),
             "final_eval": last_eval, "wall_time_s": wall, "steps": task.step, "learner_steps": task.learner_steps,
             "episodes": task.episodes, "log_positions": self.logger.positions(),
         }, kind="task", domain=cfg.env.domain)
@@ -242,6 +251,36 @@ class Trainer:
                           + (f" ({last_eval['fraction_of_optimal']:.0%} of optimal)" if "fraction_of_optimal" in last_eval else "")
                           + f", {task.episodes} episodes, {wall:.0f} s")
         self.write_summary()
+
+    # ---- how episodes start, held-out data ------------------------------------------------------
+    def episode_start(self, step: int):
+        """The ``start`` of learner and evaluation episodes at task step ``step``: None (a plain reset),
+        or a transfer's pre-rollout (:class:`~drago.train.transfer.PreRollout`)."""
+        if self.cfg.transfer.pre_rollout_checkpoint is None:
+            return None
+        if self._pre_rollout is None:
+            from drago.train.transfer import PreRollout
+
+            self._pre_rollout = PreRollout.from_config(self.cfg, self.run_dir, self.device)
+        return lambda env: self._pre_rollout(env, step)
+
+    def heldout_file(self, index: int) -> Path:
+        return self.run_dir / "heldout" / f"task{index + 1}_{self.cfg.env.tasks[index]}.npz"
+
+    def record_heldout(self, index: int, learner: Agent | None = None, step: int = 0) -> None:
+        """Record task ``index``'s held-out transitions (DMC only; :mod:`drago.eval.heldout`): from its final
+        ``learner`` at task step ``step``, or, without one, from its checkpoint if the file is missing."""
+        cfg, path = self.cfg, self.heldout_file(index)
+        if cfg.env.domain == "minigrid" or cfg.train.heldout_episodes == 0 or (learner is None and path.exists()):
+            return
+        from drago.eval.heldout import record_heldout, record_transitions
+
+        if learner is None:
+            record_heldout(self.task_checkpoint(index), path, self.device)
+        else:
+            record_transitions(learner, step, cfg, index, path, self.device)
+        self.logger.print(f"[{cfg.env.tasks[index]}] held-out set: {cfg.train.heldout_episodes} eval-mode episodes "
+                          f"of the final learner -> {path.relative_to(self.run_dir)}")
 
     # ---- evaluation --------------------------------------------------------------------------
     def _eval_due(self, task: TaskState, env_step: int, last_eval_env: int) -> bool:
@@ -259,7 +298,8 @@ class Trainer:
         returns = []
         for _ in range(cfg.train.eval_episodes):
             episode = run_episode(env, cfg.env.episode_length,
-                                  lambda obs, t: task.learner.act(obs, task.step, eval_mode=True, first_step=t == 0))
+                                  lambda obs, t: task.learner.act(obs, task.step, eval_mode=True, first_step=t == 0),
+                                  self.episode_start(task.step))
             returns.append(episode.ret)
         result = {"episode_reward": float(np.mean(returns)), "episode_reward_std": float(np.std(returns))}
         optimum = task_optimum(cfg.env.domain, task.name, cfg.env.dense_reward)

@@ -19,23 +19,39 @@ The transfer's config is the source run's with these changes:
 
 The same function relearns a training task from a later world model (``--task room1 --after 4``), the
 paper's walker appendix table for any domain.
+
+DeepMind Control test tasks (spec §1.2.5, Table 1) are named by their catalogue entry
+(:data:`~drago.envs.tasks.DMC_TRANSFER_TASKS`, e.g. ``--task jump2run --after 2``): the run learns the
+entry's target task, and for the "X2Y" entries every learner and evaluation episode starts with a
+pre-rollout (:class:`PreRollout`): a reset, then ``pre_rollout_steps`` agent steps of the source task's
+learner as saved in that task's checkpoint of the same run (its heads and world model, eval-mode
+planning). Those steps are neither stored nor counted; DRAGO's reviewer episodes start from a plain reset.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import csv
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
+
+from drago.agent.agent import Agent
+from drago.agent.networks import linear_schedule
 from drago.config import Config, ConfigError, validate
+from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask
 from drago.train.run import CONFIG_FILE, RunDirError, new_run, read_run_config, resume
 from drago.train.trainer import Trainer
 
-__all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "TransferCase", "default_transfer_dir", "describe", "finished_stages",
-           "new_transfer", "paper_cases", "run_paper_cases", "run_transfer", "stage_checkpoint", "transfer_config",
+__all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "PreRollout", "SavedLearner", "TransferCase", "default_transfer_dir",
+           "describe", "finished_stages", "load_learner", "new_transfer", "paper_cases", "resolve_task",
+           "run_paper_cases", "run_transfer", "seeded_torch_rng", "stage_checkpoint", "transfer_config",
            "transfer_summary"]
 
 DEFAULT_EPISODES = 20  # learner episodes of a transfer (the few-shot protocol, spec §4.3)
@@ -43,10 +59,14 @@ TRANSFER_FOLDER = "transfer"
 
 TransferCase = tuple[str, int]  # (test task, stage K)
 
-#: The paper's test tasks per domain and the stage each is learned after (spec §1.1.4).
+#: The paper's test tasks per domain and the stage each is learned after (spec §1.1.4; DeepMind Control:
+#: Table 1 as catalogued in DMC_TRANSFER_TASKS, spec §1.2.5, stages in the paper's sequence).
 PAPER_CASES: dict[str, tuple[TransferCase, ...]] = {
     "minigrid": (("room1to2", 2), ("room1to3", 3), ("room1to3", 4), ("room3to4", 4)),
+    **{domain: tuple((t.name, t.stage) for t in DMC_TRANSFER_TASKS.values() if t.domain == domain)
+       for domain in ("cheetah", "walker")},
 }
+DMC_TRANSFER_TASKS_DOMAINS = frozenset(t.domain for t in DMC_TRANSFER_TASKS.values())
 
 
 def default_transfer_dir(run_dir: Path, task: str, after: int) -> Path:
@@ -70,12 +90,25 @@ def finished_stages(run_dir: Path, cfg: Config) -> list[int]:
     return [k for k in range(1, len(cfg.env.tasks) + 1) if stage_checkpoint(run_dir, cfg, k).is_file()]
 
 
-def _check_task(source: Config, task: str) -> None:
+def resolve_task(source: Config, task: str) -> tuple[str, DmcTransferTask | None]:
+    """The task a transfer learns and its catalogue test task: a DeepMind Control test-task name
+    (``jump2run``) gives its target task, any task of the domain stands for itself.
+
+    Raises:
+        ConfigError: a name that is neither (one line listing the valid ones).
+    """
     from drago.envs import available_tasks
 
-    valid = available_tasks(source.env.domain)
+    domain = source.env.domain
+    case = DMC_TRANSFER_TASKS.get(task)
+    if case is not None and case.domain == domain:
+        return case.target, case
+    valid = available_tasks(domain)
     if task not in valid:
-        raise ConfigError(f"unknown task '{task}' for domain {source.env.domain}; valid tasks: {', '.join(valid)}")
+        cases = [name for name, c in DMC_TRANSFER_TASKS.items() if c.domain == domain]
+        more = f"; test tasks: {', '.join(cases)}" if cases else ""
+        raise ConfigError(f"unknown task '{task}' for domain {domain}; valid tasks: {', '.join(valid)}{more}")
+    return task, None
 
 
 def _check_stage(run_dir: Path, cfg: Config, after: int) -> Path:
@@ -93,12 +126,14 @@ def _check_stage(run_dir: Path, cfg: Config, after: int) -> Path:
 
 def transfer_config(source: Config, task: str, checkpoint: str, after: int, episodes: int = DEFAULT_EPISODES,
                     learner_only: bool = False, few_shot_episodes: int | None = None, eval_every: int = 1,
-                    dense_reward: bool | None = None) -> Config:
+                    dense_reward: bool | None = None, pre_rollout_checkpoint: str | None = None,
+                    pre_rollout_steps: int | None = None, pre_rollout_planning: str = "source") -> Config:
     """The config of a transfer run, derived from its source run's config (see the module docstring).
 
     Args:
         source: the source run's config.
-        task: the task to learn (any task of the source's domain).
+        task: the task to learn (any task of the source's domain), or a DeepMind Control test task of
+            the catalogue (``jump2run``), which learns its target task.
         checkpoint: the stage checkpoint, relative to the transfer run's directory (or absolute).
         after: the stage K that checkpoint ends.
         episodes: learner episodes to train.
@@ -107,11 +142,20 @@ def transfer_config(source: Config, task: str, checkpoint: str, after: int, epis
             ``episodes`` if fewer).
         eval_every: evaluate after every this many learner episodes.
         dense_reward: None for the catalogue's reward type of ``task``.
+        pre_rollout_checkpoint: task checkpoint of the learner that starts every learner and evaluation
+            episode (relative to the transfer run's directory, or absolute); required by the X2Y test tasks.
+        pre_rollout_steps: agent steps of that pre-rollout (None: the test task's, 100).
+        pre_rollout_planning: see ``transfer.pre_rollout_planning``.
 
     Raises:
         ConfigError: one line naming the bad value.
     """
-    _check_task(source, task)
+    target, case = resolve_task(source, task)
+    if case is not None and case.pre_rollout_source is not None and pre_rollout_checkpoint is None:
+        raise ConfigError(f"test task {case.name} starts every episode after a pre-rollout of the "
+                          f"{case.pre_rollout_source} learner: pass that task's checkpoint")
+    if pre_rollout_steps is None:
+        pre_rollout_steps = case.pre_rollout_steps if case is not None else 100
     if few_shot_episodes is None:
         few_shot_episodes = min(DEFAULT_EPISODES, episodes)
     for name, value in (("--episodes", episodes), ("--few-shot-episodes", few_shot_episodes),
@@ -123,7 +167,7 @@ def transfer_config(source: Config, task: str, checkpoint: str, after: int, epis
                           f"({eval_every}), so that an evaluation falls on it")
     cfg = copy.deepcopy(source)
     steps = episodes * cfg.env.episode_length
-    cfg.env.tasks = (task,)
+    cfg.env.tasks = (target,)
     cfg.env.dense_reward = dense_reward
     cfg.agent.seed_steps = 0
     cfg.train.learner_steps_per_task = steps
@@ -133,17 +177,42 @@ def transfer_config(source: Config, task: str, checkpoint: str, after: int, epis
     cfg.transfer.after = after
     cfg.transfer.learner_only = learner_only
     cfg.transfer.few_shot_episodes = few_shot_episodes
+    cfg.transfer.case = case.name if case is not None else None
+    cfg.transfer.pre_rollout_checkpoint = pre_rollout_checkpoint
+    cfg.transfer.pre_rollout_steps = pre_rollout_steps
+    cfg.transfer.pre_rollout_planning = pre_rollout_planning
+    if cfg.env.domain != "minigrid":  # the grid records none anyway; its transfer configs stay as they were
+        cfg.train.heldout_episodes = 0  # held-out sets measure a continual sequence's retention, not a transfer
     validate(cfg)
     return cfg
 
 
+def _pre_rollout_stage(run_dir: Path, cfg: Config, case: DmcTransferTask) -> Path:
+    """The checkpoint of the run's learner of ``case.pre_rollout_source`` (its last stage on that task)."""
+    source_task = case.pre_rollout_source
+    stages = [k for k, name in enumerate(cfg.env.tasks, start=1) if name == source_task]
+    if not stages:
+        raise RunDirError(f"{case.name} starts its episodes with the {source_task} learner, but {run_dir} never "
+                          f"trains {source_task} (tasks: {', '.join(cfg.env.tasks)})")
+    path = stage_checkpoint(run_dir, cfg, stages[-1])
+    if not path.is_file():
+        done = finished_stages(run_dir, cfg)
+        have = f"finished stages: {', '.join(map(str, done))}" if done else "no stage is finished yet"
+        raise RunDirError(f"{run_dir} has no checkpoint after stage {stages[-1]} ({path.name}), whose "
+                          f"{source_task} learner {case.name} needs for its pre-rollouts; {have}")
+    return path
+
+
 def _planned(run_dir: Path, task: str, after: int, out: Path | None, **options: Any) -> tuple[Config, Path]:
     source = read_run_config(Path(run_dir))
-    _check_task(source, task)  # before the stage check: a typo in the task is the likelier mistake
+    _, case = resolve_task(source, task)  # before the stage check: a typo in the task is the likelier mistake
     checkpoint = _check_stage(Path(run_dir), source, after)
     out = Path(out) if out is not None else default_transfer_dir(run_dir, task, after)
     # Relative to the transfer directory, so moving the whole run tree keeps the link.
     relative = os.path.relpath(checkpoint.resolve(), out.resolve())
+    if case is not None and case.pre_rollout_source is not None:
+        pre = _pre_rollout_stage(Path(run_dir), source, case)
+        options = {**options, "pre_rollout_checkpoint": os.path.relpath(pre.resolve(), out.resolve())}
     return transfer_config(source, task, relative, after, **options), out
 
 
@@ -182,7 +251,8 @@ def describe(summary: dict[str, Any]) -> str:
                 + f" at episode {point['episode']}, {point['total_env_steps']} env steps")
 
     few = t["few_shot"]
-    return (f"[{t['task']} after {t['after']}] few-shot return after {t['few_shot_episodes']} learner episodes: "
+    name = f"{t['case']}: {t['task']}" if t.get("case") else t["task"]
+    return (f"[{name} after {t['after']}] few-shot return after {t['few_shot_episodes']} learner episodes: "
             f"{score(few['equal_episodes'])}; at equal env steps: {score(few['equal_env_steps'])}")
 
 
@@ -200,6 +270,8 @@ def run_paper_cases(run_dir: Path, out: Path | None = None, force: bool = False,
     run_dir = Path(run_dir)
     source = read_run_config(run_dir)
     cases = paper_cases(source.env.domain)
+    if source.env.domain in DMC_TRANSFER_TASKS_DOMAINS:
+        cases = tuple((task, _paper_stage(run_dir, source, DMC_TRANSFER_TASKS[task])) for task, _ in cases)
     plans = []
     for task, after in cases:
         case_out = (Path(out) / f"{task}-after{after}") if out is not None else None
@@ -221,6 +293,16 @@ def run_paper_cases(run_dir: Path, out: Path | None = None, force: bool = False,
         trainer.logger.print(f"[{label}] {'starting' if fresh else 'resuming'} -> {case_dir}")
         summaries.append(run_transfer(trainer))
     return summaries
+
+
+def _paper_stage(run_dir: Path, cfg: Config, case: DmcTransferTask) -> int:
+    """The stage of the run after which a Table 1 test task is learned: after its ``after`` task, found by
+    name, so runs of the paper's sequence get the catalogue's stage (spec §1.2.5)."""
+    stages = [k for k, name in enumerate(cfg.env.tasks, start=1) if name == case.after]
+    if not stages:
+        raise RunDirError(f"{case.name} ({case.paper_name}) is learned after {case.after}, which {run_dir} never "
+                          f"trains (tasks: {', '.join(cfg.env.tasks)}); run it with --task {case.name} --after K")
+    return stages[-1]
 
 
 def _check_same_settings(case_dir: Path, cfg: Config) -> None:
@@ -276,8 +358,13 @@ def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]
         dense = get_grid_task(task, dense).dense
     done = tasks[0] if tasks else None
     planned = (cfg.train.learner_steps_per_task or 0) // cfg.env.episode_length
+    pre_rollout = None
+    if cfg.transfer.pre_rollout_checkpoint is not None:
+        pre_rollout = {"checkpoint": cfg.transfer.pre_rollout_checkpoint, "steps": cfg.transfer.pre_rollout_steps,
+                       "planning": cfg.transfer.pre_rollout_planning}
     return {
-        "task": task, "after": cfg.transfer.after, "source_checkpoint": cfg.transfer.checkpoint,
+        "task": task, "case": cfg.transfer.case, "pre_rollout": pre_rollout,
+        "after": cfg.transfer.after, "source_checkpoint": cfg.transfer.checkpoint,
         "method": cfg.method.name, "learner_only": cfg.transfer.learner_only,
         "reward": None if dense is None else ("dense" if dense else "sparse"),
         "optimal_return": task_optimum(cfg.env.domain, task, cfg.env.dense_reward),
@@ -288,3 +375,122 @@ def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]
         "total_env_steps": done["env_steps"] if done else None,
         "wall_time_s": done["wall_time_s"] if done else None,
     }
+
+
+# ---- pre-rollouts (spec §1.2.5) --------------------------------------------------------------------
+@contextlib.contextmanager
+def seeded_torch_rng(seed: int, device: torch.device | str = "cpu") -> Iterator[None]:
+    """Run a block on torch's global generator seeded with ``seed``, then restore the previous state.
+
+    The planner draws from the global generator; this gives a block (a pre-rollout, a held-out
+    recording) its own reproducible stream without moving the one training continues with.
+    """
+    device = torch.device(device)
+    cuda = [device.index if device.index is not None else torch.cuda.current_device()] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=cuda):
+        torch.default_generator.manual_seed(int(seed))
+        for index in cuda:
+            with torch.cuda.device(index):
+                torch.cuda.manual_seed(int(seed))
+        yield
+
+
+@dataclass
+class SavedLearner:
+    """The learner a task checkpoint holds: its heads over that checkpoint's world model.
+
+    Attributes:
+        agent: planner-ready agent (never trained: it has no world-model optimizer).
+        config: the config of the run that wrote the checkpoint.
+        task: the checkpoint's task; task_index its 0-based position in that run's sequence.
+        steps: the task's step counter at its end, where the learner's horizon schedule stood.
+    """
+
+    agent: Agent
+    config: Config
+    task: str
+    task_index: int
+    steps: int
+
+
+def load_learner(path: str | Path, device: torch.device | str = "cpu") -> SavedLearner:
+    """The final learner of a task checkpoint, planning as it did at the end of its task.
+
+    Its CEM std floor is the one the trainer saved with it (checkpoints written before that field take
+    the floor's schedule at the task's last step, the same up to one iteration's updates).
+
+    Raises:
+        drago.train.checkpoint.CheckpointError: missing, corrupt or foreign file, or no learner heads.
+    """
+    from drago.envs import env_spec
+    from drago.train.checkpoint import CheckpointError, load_checkpoint
+    from drago.train.trainer import build_world_model
+
+    path, device = Path(path), torch.device(device)
+    data = load_checkpoint(path, kind="task", map_location=device)
+    if "learner" not in data or "config" not in data:
+        raise CheckpointError(f"{path} holds no learner heads; it cannot drive a pre-rollout or record held-out data")
+    try:
+        cfg = Config.from_dict(data["config"])
+    except (ConfigError, ValueError) as err:
+        raise CheckpointError(f"{path}: {err}") from None
+    spec = env_spec(data["domain"])
+    # Building networks draws initial weights from torch's global generator: isolate it, so loading a
+    # learner mid-run (a pre-rollout's, on first use or after a resume) leaves the training's stream alone.
+    with seeded_torch_rng(0, device):
+        world_model = build_world_model(cfg, spec, device)
+        agent = Agent(world_model, None, cfg.agent, spec.discrete)
+    world_model.load_state_dict(data["world_model"])
+    agent.heads.load_state_dict(data["learner"])
+    steps = int(data["steps"])
+    a = cfg.agent
+    agent.std_floor = float(data.get("learner_std_floor",
+                                     linear_schedule(a.std_schedule_start, a.min_std, a.std_schedule_steps, steps)))
+    return SavedLearner(agent=agent, config=cfg, task=str(data["task"]), task_index=int(data["task_index"]),
+                        steps=steps)
+
+
+class PreRollout:
+    """How an episode of an X2Y test task starts (spec §1.2.5): reset, then ``steps`` agent steps of a
+    saved learner in eval mode; returns the observation the test episode starts from.
+
+    Nothing is stored or counted, and nothing is kept between episodes: the randomness of one
+    pre-rollout comes from a seed drawn from the env's ``np_random`` right after the reset (the state a
+    resumable checkpoint saves), on a torch stream of its own, so the trainer's streams do not move.
+
+    Args:
+        learner: the source learner (:func:`load_learner`).
+        steps: agent steps of each pre-rollout.
+        planning: ``"source"``: the horizon and CEM std floor the learner had at the end of its task;
+            ``"code"``: the official code's quirk, the current task's horizon schedule and the initial
+            std floor (spec §1.2.5).
+        device: where the learner lives.
+    """
+
+    def __init__(self, learner: SavedLearner, steps: int, planning: str = "source",
+                 device: torch.device | str = "cpu"):
+        self.learner = learner
+        self.steps = int(steps)
+        self.planning = planning
+        self.device = torch.device(device)
+        if planning == "code":
+            learner.agent.std_floor = learner.config.agent.std_schedule_start
+
+    @classmethod
+    def from_config(cls, cfg: Config, run_dir: Path, device: torch.device | str = "cpu") -> PreRollout:
+        """The pre-rollout a run's ``transfer`` settings ask for (its checkpoint relative to ``run_dir``)."""
+        path = Path(run_dir) / cfg.transfer.pre_rollout_checkpoint  # an absolute path stays absolute
+        return cls(load_learner(path, device), cfg.transfer.pre_rollout_steps, cfg.transfer.pre_rollout_planning,
+                   device)
+
+    def __call__(self, env, task_step: int = 0) -> np.ndarray:
+        """Reset ``env`` and pre-roll it; ``task_step`` is the current task's step ("code" planning)."""
+        obs, _ = env.reset()
+        if self.steps == 0:
+            return obs
+        agent = self.learner.agent
+        plan_step = self.learner.steps if self.planning == "source" else task_step
+        with seeded_torch_rng(int(env.np_random.integers(2**63)), self.device):
+            for t in range(self.steps):
+                obs, _, _, _, _ = env.step(agent.act(obs, plan_step, eval_mode=True, first_step=t == 0))
+        return obs

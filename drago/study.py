@@ -1,0 +1,693 @@
+"""The grid study in one command (``drago study``): every method x seed on the task sequence, the
+paper's transfer cases of every run, and one report.
+
+A study is a plan of jobs, each one ``drago`` command line, worked out from what is on disk:
+
+* one sequence run per (method, seed) in ``OUT/METHOD/seedS``: ``drago train`` if it was never
+  started, ``drago resume`` if it was interrupted, nothing if its ``summary.json`` says it is complete;
+* for every run, the paper's transfer cases of its domain (spec §4.2) in
+  ``RUN_DIR/transfer/TASK-afterK``, the same way (``drago transfer --task T --after K``, ``drago
+  resume``, or nothing), each started once its run has finished. A case whose stage is beyond the
+  sequence (a two-task run has no stage 3) is left out, and the plan says so;
+* then the report over the runs (``OUT/report/report.html`` and ``report.md``) and the transfers'
+  few-shot scores (``OUT/report/transfers.csv`` and ``transfers.md``).
+
+Because the plan is computed afresh from the directories, running the same command again after any
+crash (a failed run, Ctrl-C, a SIGKILL of the study itself) finishes the study without redoing finished
+work. A directory holding a run with other settings than the study's is an error, never mixed in.
+
+Jobs run as child processes, ``jobs`` at a time, each new run with ``train.threads`` = cores // jobs;
+each child's output goes to ``OUT/logs/``. A child dies with the study (Linux), so a restarted study
+never races an orphan for a run directory, and a lock file keeps two studies out of one folder.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+import traceback
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from drago.config import Config, ConfigError, load_config
+from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
+from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir
+
+__all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
+           "config_diffs", "default_study_dir", "describe_plan", "parse_seeds", "plan_study", "run_study"]
+
+DEFAULT_PRESET = "minigrid-cpu"
+DEFAULT_METHODS = ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer")
+DEFAULT_SEEDS = (1, 2, 3)
+SUMMARY_FILE = "summary.json"
+LOG_FOLDER = "logs"
+REPORT_FOLDER = "report"
+LOCK_FILE = ".study.lock"
+TRANSFERS_CSV = "transfers.csv"
+TRANSFERS_MD = "transfers.md"
+#: Settings a study may change without making an existing run "another run": the thread count follows
+#: --jobs, and a run keeps the count it started with (``drago resume`` uses the recorded config).
+IGNORED_SETTINGS = ("train.threads",)
+PARENT_ENV = "DRAGO_STUDY_PARENT"
+
+START, RESUME, DONE = "start", "resume", "done"
+
+
+class StudyError(RunDirError):
+    """A study that cannot be planned or run as asked; the message is one line (the CLI prints it, exit 2)."""
+
+
+def default_study_dir(preset: str) -> Path:
+    return Path("runs") / "study" / preset
+
+
+def parse_seeds(values: Iterable[str | int]) -> list[int]:
+    """Seeds from ``1 2 3`` or ranges such as ``1-3``, in order, without duplicates.
+
+    Raises:
+        StudyError: a value that is neither a non-negative integer nor a range ``A-B`` with A <= B.
+    """
+    seeds: list[int] = []
+    for value in values:
+        text = str(value).strip()
+        low, sep, high = text.partition("-")
+        try:
+            span = range(int(low), int(high) + 1) if sep and low else range(int(text), int(text) + 1)
+        except ValueError:
+            raise StudyError(f"--seeds takes non-negative integers or ranges like 1-3, got '{text}'") from None
+        if not span or span.start < 0:
+            raise StudyError(f"--seeds takes non-negative integers or ranges like 1-3, got '{text}'")
+        seeds.extend(s for s in span if s not in seeds)
+    return seeds
+
+
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+# ---------------------------------------------------------------------------------------------------
+# planning
+# ---------------------------------------------------------------------------------------------------
+@dataclass(eq=False)
+class Job:
+    """One ``drago`` command of the study.
+
+    Attributes:
+        label: How the job is named in the study's output, e.g. ``drago seed1 room1to2-after2``.
+        kind: ``run`` (a sequence run) or ``transfer`` (one transfer case).
+        method, seed: The run's (for a transfer, its source run's).
+        directory: The run directory the job writes.
+        state: What the plan found: ``start`` (never started), ``resume`` (interrupted) or ``done``.
+        argv: The ``drago`` arguments that do the work (empty when done).
+        log: Where the command's output goes.
+        threads: ``train.threads`` the job runs with (0: all cores).
+        source: For a transfer, the run job it waits for (None when that run was already complete).
+        case: For a transfer, (test task, stage K).
+        status: ``pending``, ``running``, ``done``, ``failed`` or ``blocked`` (its run failed).
+    """
+
+    label: str
+    kind: str
+    method: str
+    seed: int
+    directory: Path
+    state: str
+    argv: list[str]
+    log: Path
+    threads: int
+    source: Job | None = None
+    case: tuple[str, int] | None = None
+    status: str = "pending"
+    returncode: int | None = None
+    seconds: float = 0.0
+
+
+@dataclass
+class StudyPlan:
+    """Every job of a study in the order they are started: each run followed by its transfers."""
+
+    preset: str
+    out: Path
+    methods: list[str]
+    seeds: list[int]
+    overrides: list[str]
+    tasks: tuple[str, ...]
+    jobs: int
+    threads: int
+    cores: int
+    transfer_episodes: int
+    cases: tuple[tuple[str, int], ...]
+    runs: list[Job] = field(default_factory=list)
+    transfers: list[Job] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def report_dir(self) -> Path:
+        return self.out / REPORT_FOLDER
+
+    @property
+    def ordered(self) -> list[Job]:
+        order = []
+        for run in self.runs:
+            order.append(run)
+            order.extend(t for t in self.transfers if t.method == run.method and t.seed == run.seed)
+        return order
+
+
+def config_diffs(existing: Config, wanted: Config, ignore: Sequence[str] = IGNORED_SETTINGS) -> list[str]:
+    """``key: value there, value here`` for every setting in which two configs differ."""
+    there, here = Config.from_dict(existing.to_dict()).to_dict(), Config.from_dict(wanted.to_dict()).to_dict()
+
+    def flat(data: dict[str, Any]) -> dict[str, Any]:
+        out = {}
+        for key, value in data.items():
+            if isinstance(value, dict):
+                out.update({f"{key}.{k}": v for k, v in value.items()})
+            else:
+                out[key] = value
+        return out
+
+    there, here = flat(there), flat(here)
+    return [f"{key}: {there.get(key)!r} there, {here.get(key)!r} here" for key in dict.fromkeys([*here, *there])
+            if key not in ignore and there.get(key) != here.get(key)]
+
+
+def _complete(directory: Path) -> bool:
+    try:
+        return json.loads((directory / SUMMARY_FILE).read_text()).get("complete") is True
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def _state(directory: Path, wanted: Callable[[], Config], what: str) -> tuple[str, Config | None]:
+    """START, RESUME or DONE for ``directory``, and the config it holds; refuses other settings."""
+    if not directory.is_dir() or not any(directory.iterdir()):
+        if directory.exists() and not directory.is_dir():
+            raise StudyError(f"{directory} is a file, not a run directory; delete it or choose another --out")
+        return START, None
+    if not (directory / CONFIG_FILE).is_file():
+        raise StudyError(f"{directory} is not empty and not a drago run; delete it or choose another --out")
+    existing = read_run_config(directory)
+    diffs = config_diffs(existing, wanted())
+    if diffs:
+        more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
+        raise StudyError(f"{directory} holds a {what} with other settings than this study's "
+                         f"({'; '.join(diffs[:3])}{more}); choose another --out or delete {directory}")
+    return (DONE if _complete(directory) else RESUME), existing
+
+
+def _has_threads(overrides: Sequence[str]) -> bool:
+    return any(item.partition("=")[0].strip() in ("train.threads", "threads") for item in overrides)
+
+
+def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_METHODS,
+               seeds: Sequence[int] = DEFAULT_SEEDS, out: str | Path | None = None,
+               overrides: Sequence[str] = (), jobs: int = 1, transfers: bool = True,
+               transfer_episodes: int = DEFAULT_EPISODES, cores: int | None = None) -> StudyPlan:
+    """Work out what a study still has to do, from its directories.
+
+    Args:
+        preset: Preset of every run.
+        methods: Continual methods (duplicates dropped).
+        seeds: Seeds (duplicates dropped).
+        out: The study folder (default ``runs/study/PRESET``).
+        overrides: ``key=value`` settings for every run. Unless they set ``train.threads``, new runs get
+            ``train.threads`` = max(1, cores // jobs).
+        jobs: Runs at a time.
+        transfers: Plan the paper's transfer cases of every run.
+        transfer_episodes: Learner episodes of each transfer case.
+        cores: CPU cores to share (default: those this process may use).
+
+    Raises:
+        StudyError: A bad argument, or a directory holding something other than what the study would
+            create there (one line naming it).
+        ConfigError: An unknown preset, method or setting.
+    """
+    methods = list(dict.fromkeys(methods))
+    seeds = list(dict.fromkeys(int(s) for s in seeds))
+    if not methods:
+        raise StudyError("name at least one method")
+    if not seeds or any(s < 0 for s in seeds):
+        raise StudyError(f"seeds must be non-negative integers, got {' '.join(map(str, seeds)) or 'none'}")
+    if jobs < 1:
+        raise StudyError(f"--jobs must be a positive integer, got {jobs}")
+    if transfer_episodes < 1:
+        raise StudyError(f"--transfer-episodes must be a positive integer, got {transfer_episodes}")
+    cores = cores or available_cores()
+    overrides = list(overrides)
+    if not _has_threads(overrides):
+        overrides.append(f"train.threads={max(1, cores // jobs)}")
+    out = Path(out) if out is not None else default_study_dir(preset)
+    base = load_config(preset, overrides, method=methods[0], seed=seeds[0])
+    cases = PAPER_CASES.get(base.env.domain, ()) if transfers else ()
+    n_tasks = len(base.env.tasks)
+    kept = tuple((task, after) for task, after in cases if after <= n_tasks)
+    plan = StudyPlan(preset=preset, out=out, methods=methods, seeds=seeds, overrides=overrides,
+                     tasks=tuple(base.env.tasks), jobs=jobs, threads=base.train.threads, cores=cores,
+                     transfer_episodes=transfer_episodes, cases=kept)
+    if transfers and not cases:
+        plan.notes.append(f"the paper has no transfer cases for domain {base.env.domain}: none planned")
+    left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
+    if left_out:
+        plan.notes.append(f"transfer cases left out, the sequence has {n_tasks} task{'s' * (n_tasks != 1)}: "
+                          + ", ".join(left_out))
+    if jobs > cores:
+        plan.notes.append(f"--jobs {jobs} is more than the {cores} cores: the runs will share them")
+
+    logs = out / LOG_FOLDER
+    for seed in seeds:
+        for method in methods:
+            cfg = load_config(preset, overrides, method=method, seed=seed)
+            run_dir = out / method / f"seed{seed}"
+            label = f"{method} seed{seed}"
+            state, existing = _state(run_dir, lambda cfg=cfg: cfg, "run")
+            argv = {START: ["train", preset, "--method", method, "--seed", str(seed), "--out", str(run_dir),
+                            "--no-progress", *overrides],
+                    RESUME: ["resume", str(run_dir), "--no-progress"], DONE: []}[state]
+            source_cfg = existing or cfg
+            run = Job(label, "run", method, seed, run_dir, state, argv, logs / f"{method}-seed{seed}.log",
+                      source_cfg.train.threads)
+            plan.runs.append(run)
+            for task, after in kept:
+                plan.transfers.append(_transfer_job(run, task, after, transfer_episodes, logs))
+    resumed = sorted({j.threads for j in plan.runs if j.state == RESUME and j.threads != plan.threads})
+    if resumed:
+        plan.notes.append(f"interrupted runs keep the train.threads they started with "
+                          f"({', '.join(map(str, resumed))}; 0 is every core)")
+    return plan
+
+
+def _transfer_job(run: Job, task: str, after: int, episodes: int, logs: Path) -> Job:
+    from drago.train.transfer import _planned
+
+    case_dir = default_transfer_dir(run.directory, task, after)
+
+    def wanted() -> Config:
+        # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N` would write.
+        return _planned(run.directory, task, after, None, episodes=episodes)[0]
+
+    state, _ = _state(case_dir, wanted, "transfer")
+    argv = {START: ["transfer", str(run.directory), "--task", task, "--after", str(after), "--episodes", str(episodes),
+                    "--no-progress"],
+            RESUME: ["resume", str(case_dir), "--no-progress"], DONE: []}[state]
+    return Job(f"{run.label} {task}-after{after}", "transfer", run.method, run.seed, case_dir, state, argv,
+               logs / f"{run.method}-seed{run.seed}-{task}-after{after}.log", run.threads,
+               source=run if run.state != DONE else None, case=(task, after))
+
+
+def _counts(jobs: Sequence[Job]) -> str:
+    n = {state: sum(j.state == state for j in jobs) for state in (START, RESUME, DONE)}
+    return f"{n[START]} to start, {n[RESUME]} to resume, {n[DONE]} finished (skipped)"
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds}s"
+    if seconds < 3600:
+        return f"{seconds // 60}m {seconds % 60:02d}s"
+    return f"{seconds // 3600}h {seconds % 3600 // 60:02d}m"
+
+
+def _wall_time(job: Job) -> float | None:
+    """Seconds a finished job took, from its summary."""
+    try:
+        summary = json.loads((job.directory / SUMMARY_FILE).read_text())
+        if job.kind == "transfer":
+            return float(summary["transfer"]["wall_time_s"])
+        return float(sum(t["wall_time_s"] for t in summary["tasks"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _estimate(plan: StudyPlan) -> str | None:
+    """Time left from the wall times of the study's finished jobs (None before any has finished)."""
+    total, counted, basis = 0.0, True, []
+    for kind, jobs in (("run", plan.runs), ("transfer", plan.transfers)):
+        left = sum(j.state != DONE for j in jobs)
+        times = [t for t in (_wall_time(j) for j in jobs if j.state == DONE) if t is not None]
+        if times:
+            total += left * statistics.mean(times)
+            basis.append(f"{len(times)} finished {kind}{'s' * (len(times) != 1)}")
+        elif left:
+            counted = False
+    if not basis or not total:
+        return None
+    rest = "" if counted else "; jobs of a kind none of which has finished yet are not counted"
+    return (f"about {_duration(total / plan.jobs)} left at --jobs {plan.jobs} (mean wall time of "
+            f"{' and '.join(basis)}{rest})")
+
+
+def describe_plan(plan: StudyPlan, verbose: bool = False) -> list[str]:
+    """The plan as console lines; ``verbose`` adds one line per run."""
+    n_runs = len(plan.runs)
+    lines = [f"drago study {plan.preset} into {plan.out}: {len(plan.methods)} method{'s' * (len(plan.methods) != 1)}"
+             f" x {len(plan.seeds)} seed{'s' * (len(plan.seeds) != 1)} = {n_runs} run{'s' * (n_runs != 1)} of "
+             f"{' -> '.join(plan.tasks)}",
+             f"  methods:   {', '.join(plan.methods)}; seeds: {', '.join(map(str, plan.seeds))}",
+             f"  runs:      {_counts(plan.runs)}"]
+    if plan.cases:
+        cases = ", ".join(f"{task} after {after}" for task, after in plan.cases)
+        lines += [f"  transfers: {_counts(plan.transfers)}; cases {cases}, "
+                  f"{plan.transfer_episodes} learner episode{'s' * (plan.transfer_episodes != 1)} each"]
+    lines.append(f"  jobs:      {plan.jobs} at a time on {plan.cores} core{'s' * (plan.cores != 1)}, new runs with "
+                 f"train.threads={plan.threads}; each job's output in {plan.out / LOG_FOLDER}/")
+    estimate = _estimate(plan)
+    if estimate:
+        lines.append(f"  time:      {estimate}")
+    report = f"{plan.report_dir / 'report.html'} and report.md"
+    if plan.cases:
+        report += f", with {TRANSFERS_CSV} and {TRANSFERS_MD} for the transfers"
+    lines.append(f"  report:    {report}")
+    lines += [f"  note:      {note}" for note in plan.notes]
+    if verbose:
+        width = max(len(j.label) for j in plan.runs)
+        for run in plan.runs:
+            mine = [t for t in plan.transfers if (t.method, t.seed) == (run.method, run.seed)]
+            extra = "  transfers: " + " ".join(t.state for t in mine) if mine else ""
+            lines.append(f"    {run.label:<{width}}  {run.state:<6}{extra}")
+    return lines
+
+
+# ---------------------------------------------------------------------------------------------------
+# running
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class StudyResult:
+    """What a study invocation did."""
+
+    plan: StudyPlan
+    finished: list[Job]
+    failed: list[Job]
+    blocked: list[Job]
+    report: list[Path]
+    report_error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed and not self.blocked and self.report_error is None
+
+    def summary_line(self) -> str:
+        if self.ok:
+            skipped = sum(j.state == DONE for j in self.plan.ordered)
+            return (f"study complete: {len(self.finished)} job{'s' * (len(self.finished) != 1)} run, {skipped} "
+                    f"already finished; report in {self.plan.report_dir / 'report.html'}")
+        parts = []
+        if self.failed:
+            first = self.failed[0]
+            parts.append(f"{len(self.failed)} job{'s' * (len(self.failed) != 1)} failed (first: {first.label}, "
+                         f"exit {first.returncode}, log {first.log})")
+        if self.blocked:
+            parts.append(f"{len(self.blocked)} transfer{'s' * (len(self.blocked) != 1)} not started")
+        if self.report_error:
+            parts.append(f"no report ({self.report_error})")
+        return f"study incomplete: {'; '.join(parts)}; run the same command again to continue"
+
+
+class _Done:
+    """A job run in this process: finished when launched."""
+
+    def __init__(self, returncode: int):
+        self.returncode = returncode
+
+    def poll(self) -> int:
+        return self.returncode
+
+
+def _header(job: Job) -> str:
+    return f"\n==== {datetime.now().strftime('%Y-%m-%d %H:%M:%S')} drago {' '.join(job.argv)}\n"
+
+
+def _launch_process(job: Job) -> subprocess.Popen:
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, PARENT_ENV: str(os.getpid()), "PYTHONUNBUFFERED": "1"}
+    if job.threads > 0:
+        env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(job.threads)
+    with job.log.open("a") as log:
+        log.write(_header(job))
+        log.flush()
+        return subprocess.Popen([sys.executable, "-m", "drago.study", *job.argv], stdin=subprocess.DEVNULL,
+                                stdout=log, stderr=subprocess.STDOUT, env=env)
+
+
+def _launch_in_process(job: Job) -> _Done:
+    from drago import cli
+
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    with job.log.open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+        log.write(_header(job))
+        try:
+            code = cli.main(job.argv)
+        except Exception:  # a crash of the run, as a child process would exit with it
+            traceback.print_exc(file=log)
+            code = 1
+    if code == 130:  # cli.main turned Ctrl-C into exit code 130
+        raise KeyboardInterrupt
+    return _Done(code)
+
+
+@contextlib.contextmanager
+def _lock(out: Path):
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / LOCK_FILE
+    with path.open("w") as handle:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            yield
+            return
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise StudyError(f"another `drago study` is working in {out} (it holds {path}); "
+                             "wait for it to finish or stop it first") from None
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+        yield
+
+
+def _stop(running: dict[Job, Any]) -> None:
+    """Interrupt the children (they exit as after Ctrl-C) and wait for them, killing those that linger."""
+    for handle in running.values():
+        if isinstance(handle, subprocess.Popen) and handle.poll() is None:
+            handle.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + 15
+    for handle in running.values():
+        if isinstance(handle, subprocess.Popen):
+            try:
+                handle.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                handle.kill()
+                handle.wait()
+
+
+def _outcome(job: Job) -> str:
+    """A short result of a finished job for its console line."""
+    try:
+        summary = json.loads((job.directory / SUMMARY_FILE).read_text())
+        if job.kind == "transfer":
+            point = summary["transfer"]["few_shot"]["equal_episodes"]
+            frac = point.get("fraction_of_optimal")
+            return f"few-shot return {point['return']:.1f}" + (f" ({frac:.0%} of optimal)" if frac is not None else "")
+        ends = [f"{t['name']} {t['fraction_of_optimal']:.0%}" for t in summary["tasks"]
+                if t.get("fraction_of_optimal") is not None]
+        return ("final eval, of optimal: " + ", ".join(ends)) if ends else ""
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+
+
+def run_study(plan: StudyPlan, echo: Callable[[str], None] = print, in_process: bool = False,
+              poll_seconds: float = 0.2) -> StudyResult:
+    """Run every unfinished job of ``plan``, then write the report.
+
+    Jobs run ``plan.jobs`` at a time as child processes (``python -m drago.study ARGS``, which is ``drago
+    ARGS`` dying with this process), their output appended to ``job.log``. A transfer starts once its
+    run has finished; if the run fails, its transfers are not started. ``in_process`` runs the jobs one
+    after the other in this process instead (for tests: a patched function is seen by the runs).
+
+    Raises:
+        StudyError: Another study holds the folder's lock.
+        KeyboardInterrupt: After the running children were interrupted and have exited.
+    """
+    launch: Callable[[Job], Any] = _launch_in_process if in_process else _launch_process
+    todo = [job for job in plan.ordered if job.state != DONE]
+    total, count = len(todo), 0
+    finished: list[Job] = []
+    running: dict[Job, Any] = {}
+
+    def line(job: Job, text: str) -> None:
+        nonlocal count
+        count += 1
+        echo(f"[{count}/{total}] {text}")
+
+    with _lock(plan.out):
+        try:
+            while todo or running:
+                for job in [j for j in todo if j.source is not None and j.source.status in ("failed", "blocked")]:
+                    todo.remove(job)
+                    job.status = "blocked"
+                    line(job, f"not started: {job.label} (its run failed)")
+                ready = [j for j in todo if j.source is None or j.source.status == "done"]
+                while ready and len(running) < plan.jobs:
+                    job = ready.pop(0)
+                    todo.remove(job)
+                    job.status, job.seconds = "running", time.monotonic()
+                    running[job] = launch(job)
+                ended = [(job, handle.poll()) for job, handle in running.items()]
+                ended = [(job, code) for job, code in ended if code is not None]
+                if not ended:
+                    if not running and todo:  # cannot happen: every transfer waits on a run of the plan
+                        raise RuntimeError(f"study jobs wait on nothing: {', '.join(j.label for j in todo)}")
+                    time.sleep(poll_seconds)
+                    continue
+                for job, code in ended:
+                    del running[job]
+                    job.returncode, job.seconds = code, time.monotonic() - job.seconds
+                    if code == 0:
+                        job.status = "done"
+                        finished.append(job)
+                        outcome = _outcome(job)
+                        line(job, f"done    {job.label} in {_duration(job.seconds)}"
+                             + (f": {outcome}" if outcome else ""))
+                    else:
+                        job.status = "failed"
+                        line(job, f"FAILED  {job.label} (exit {code}); log: {job.log}")
+        except KeyboardInterrupt:
+            _stop(running)
+            raise
+        report, error = _write_report(plan, echo)
+    failed = [j for j in plan.ordered if j.status == "failed"]
+    blocked = [j for j in plan.ordered if j.status == "blocked"]
+    return StudyResult(plan, finished, failed, blocked, report, error)
+
+
+# ---------------------------------------------------------------------------------------------------
+# report
+# ---------------------------------------------------------------------------------------------------
+def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Path], str | None]:
+    from drago.eval.report import build_report
+    from drago.train.checkpoint import CheckpointError
+
+    run_dirs = [job.directory for job in plan.runs if (job.directory / CONFIG_FILE).is_file()]
+    if not run_dirs:
+        return [], "no run of the study has started"
+    try:
+        paths = list(build_report(run_dirs, plan.report_dir))
+        rows = transfer_rows(plan.transfers)
+        if rows:
+            paths += write_transfer_tables(rows, plan.report_dir)
+    except (RunDirError, ConfigError, CheckpointError) as err:
+        echo(f"report not written: {err}")
+        return [], str(err)
+    for path in paths:
+        echo(f"wrote {path}")
+    return paths, None
+
+
+TRANSFER_COLUMNS = ("method", "seed", "task", "after", "complete", "few_shot_episodes", "optimal_return",
+                    "return_equal_episodes", "fraction_equal_episodes", "return_equal_env_steps",
+                    "fraction_equal_env_steps", "total_env_steps", "wall_time_s", "directory")
+
+
+def transfer_rows(jobs: Iterable[Job]) -> list[dict[str, Any]]:
+    """One row per transfer case that has a summary: its few-shot scores, read in both ways (spec §4.3)."""
+    rows = []
+    for job in jobs:
+        try:
+            summary = json.loads((job.directory / SUMMARY_FILE).read_text())
+            block = summary["transfer"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        few = block.get("few_shot") or {}
+        at_episodes, at_steps = few.get("equal_episodes") or {}, few.get("equal_env_steps") or {}
+        rows.append({"method": job.method, "seed": job.seed, "task": block.get("task"), "after": block.get("after"),
+                     "complete": summary.get("complete") is True,
+                     "few_shot_episodes": block.get("few_shot_episodes"),
+                     "optimal_return": block.get("optimal_return"),
+                     "return_equal_episodes": at_episodes.get("return"),
+                     "fraction_equal_episodes": at_episodes.get("fraction_of_optimal"),
+                     "return_equal_env_steps": at_steps.get("return"),
+                     "fraction_equal_env_steps": at_steps.get("fraction_of_optimal"),
+                     "total_env_steps": block.get("total_env_steps"), "wall_time_s": block.get("wall_time_s"),
+                     "directory": str(job.directory)})
+    return rows
+
+
+def _mean_std(values: list[float]) -> str:
+    if not values:
+        return "–"
+    if len(values) == 1:
+        return f"{values[0]:.1f} (1)"
+    return f"{statistics.mean(values):.1f} ± {statistics.stdev(values):.1f} ({len(values)})"
+
+
+def write_transfer_tables(rows: list[dict[str, Any]], out_dir: Path) -> list[Path]:
+    """``transfers.csv`` (one row per case and seed) and ``transfers.md`` (mean ± std over seeds)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path, md_path = out_dir / TRANSFERS_CSV, out_dir / TRANSFERS_MD
+    with csv_path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=TRANSFER_COLUMNS)
+        writer.writeheader()
+        writer.writerows({k: ("" if v is None else v) for k, v in row.items()} for row in rows)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    cases = list(dict.fromkeys((r["task"], r["after"]) for r in rows))
+    optimum = {(r["task"], r["after"]): r["optimal_return"] for r in rows}
+    lines = ["# Transfers: few-shot return", "",
+             "Evaluation return on each test task learned from the world model saved after stage K (spec §4.2-4.3): "
+             "mean ± std over seeds (number of seeds). Rows of unfinished cases are left out until they reach the "
+             "score. Per-seed values and fractions of the DP optimum are in "
+             f"`{TRANSFERS_CSV}`; each case's curves in its `eval.csv`."]
+    for key, title in (("return_equal_episodes", "after the same number of learner episodes (the paper's reading)"),
+                       ("return_equal_env_steps", "at the same total env steps (a reviewer's steps counted)")):
+        lines += ["", f"## {title.capitalize()}", "",
+                  "| case | optimum | " + " | ".join(methods) + " |",
+                  "|---|---|" + "---|" * len(methods)]
+        for task, after in cases:
+            cells = [_mean_std([r[key] for r in rows if r["method"] == m and (r["task"], r["after"]) == (task, after)
+                                and r[key] is not None]) for m in methods]
+            best = optimum[(task, after)]
+            best = "" if best is None else f"{best:.1f}"
+            lines.append(f"| {task} after {after} | {best} | " + " | ".join(cells) + " |")
+    md_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return [csv_path, md_path]
+
+
+# ---------------------------------------------------------------------------------------------------
+# a study's child process
+# ---------------------------------------------------------------------------------------------------
+def _die_with_parent() -> None:
+    """Ask Linux to SIGKILL this process when its parent (the study) dies; elsewhere do nothing."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _child_main(argv: list[str]) -> int:
+    """``drago ARGS`` in a study's child process: it does not outlive the study that started it."""
+    _die_with_parent()
+    parent = os.environ.get(PARENT_ENV)
+    if parent and os.getppid() != int(parent):  # the study died before the line above took effect
+        return 1
+    from drago import cli
+
+    return cli.main(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(_child_main(sys.argv[1:]))

@@ -1,0 +1,300 @@
+"""`drago study`: every method x seed, their transfer cases and the report, resumable (README "The grid study").
+
+Studies here are tiny `smoke` runs (four tasks of two episodes, transfers of one episode) run in this
+process, so that a crash can be injected; one test runs the real child processes.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from drago import cli, study
+from drago.continual.naive import Continual
+from drago.study import DONE, RESUME, START, StudyError, describe_plan, parse_seeds, plan_study, run_study
+
+METHODS = ("continual", "scratch")
+TINY = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100", "train.tensorboard=false",
+        "agent.mlp_dim=16", "agent.batch_size=16", "agent.iterations=1", "agent.num_samples=8", "agent.num_elites=2",
+        "train.threads=1"]
+CASES = ("room1to2-after2", "room1to3-after3", "room1to3-after4", "room3to4-after4")
+LOGS = ("train.csv", "eval.csv")
+
+
+def plan(out: Path, *extra: str, methods=METHODS, episodes: int = 1, **options):
+    return plan_study("smoke", methods, [1], out=out, overrides=[*TINY, *extra], transfer_episodes=episodes, **options)
+
+
+def study_argv(out: Path, *extra: str) -> list[str]:
+    return ["study", "smoke", "--methods", *METHODS, "--seeds", "1", "--out", str(out), "--transfer-episodes", "1",
+            *TINY, *extra]
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def snapshot(root: Path) -> dict[str, bytes]:
+    """Every log of every run and transfer below ``root``."""
+    return {str(p.relative_to(root)): p.read_bytes() for name in LOGS for p in sorted(root.rglob(name))}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> Path:
+    """A complete, uninterrupted study of two methods and one seed."""
+    out = tmp_path_factory.mktemp("study") / "ref"
+    result = run_study(plan(out), echo=lambda line: None, in_process=True)
+    assert result.ok, result.summary_line()
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# The plan
+# ---------------------------------------------------------------------------------------------------
+def test_default_plan_is_the_grid_study(tmp_path, capsys):
+    out = tmp_path / "grid"
+    assert cli.main(["study", "--dry-run", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "drago study minigrid-cpu" in text
+    assert "7 methods x 3 seeds = 21 runs of room1 -> room2 -> room3 -> room4" in text
+    assert "runs:      21 to start, 0 to resume, 0 finished" in text
+    assert "transfers: 84 to start" in text and "room1to3 after 4" in text and "20 learner episodes each" in text
+    for method in ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer"):
+        for seed in (1, 2, 3):
+            assert f"{method} seed{seed}" in text
+    assert not out.exists()  # a dry run writes nothing
+
+
+def test_dry_run_of_a_short_sequence_leaves_out_the_cases_it_cannot_run(tmp_path, capsys):
+    out = tmp_path / "short"
+    assert cli.main([*study_argv(out, "env.tasks=[room1,room2]"), "--jobs", "2", "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    assert "2 methods x 1 seed = 2 runs of room1 -> room2" in text
+    assert "transfers: 2 to start" in text and "cases room1to2 after 2," in text
+    assert "left out" in text and "room1to3 after 3, room1to3 after 4, room3to4 after 4" in text
+    assert "2 at a time" in text
+    assert not out.exists()
+
+    # No transfers asked: none planned; threads follow --jobs when no override sets them.
+    bare = plan_study("smoke", ["continual"], [1], out=out, transfers=False, jobs=2, cores=4)
+    assert bare.transfers == [] and bare.threads == 2 and "train.threads=2" in bare.runs[0].argv
+
+
+def test_seeds_and_ranges():
+    assert parse_seeds(["1-3"]) == [1, 2, 3]
+    assert parse_seeds(["2", "1-3", "5"]) == [2, 1, 3, 5]
+    for bad in ("3-1", "x", "-1", "1-"):
+        with pytest.raises(StudyError, match="--seeds"):
+            parse_seeds([bad])
+
+
+# ---------------------------------------------------------------------------------------------------
+# A study and its re-invocation
+# ---------------------------------------------------------------------------------------------------
+def test_study_writes_runs_transfers_logs_and_report(reference):
+    for method in METHODS:
+        run = reference / method / "seed1"
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["complete"] is True and summary["method"] == method and len(summary["tasks"]) == 4
+        assert (reference / "logs" / f"{method}-seed1.log").is_file()
+        for case in CASES:
+            transfer = json.loads((run / "transfer" / case / "summary.json").read_text())
+            assert transfer["complete"] is True and transfer["transfer"]["episodes_planned"] == 1
+            assert f"{transfer['transfer']['task']}-after{transfer['transfer']['after']}" == case
+            assert (reference / "logs" / f"{method}-seed1-{case}.log").is_file()
+    report = reference / "report"
+    for name in ("report.html", "report.md", "transfers.csv", "transfers.md"):
+        assert (report / name).is_file(), name
+    rows = read_csv(report / "transfers.csv")
+    assert sorted((r["method"], f"{r['task']}-after{r['after']}") for r in rows) == sorted(
+        (m, c) for m in METHODS for c in CASES)
+    assert "| room3to4 after 4 | 88.0 |" in (report / "transfers.md").read_text()
+
+
+def test_second_invocation_only_rebuilds_the_report(reference, capsys):
+    before = snapshot(reference)
+    (reference / "report" / "report.html").unlink()
+    assert cli.main(study_argv(reference)) == 0
+    text = capsys.readouterr().out
+    assert "runs:      0 to start, 0 to resume, 2 finished" in text
+    assert "transfers: 0 to start, 0 to resume, 8 finished" in text
+    assert "[1/" not in text  # no job ran
+    assert "study complete: 0 jobs run, 10 already finished" in text
+    assert (reference / "report" / "report.html").is_file()
+    assert snapshot(reference) == before
+
+
+def test_crash_then_the_same_command_finishes_with_the_logs_of_an_uninterrupted_study(
+        reference, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "crashed"
+    # The CLI's child processes run in this process here, so that the crash below reaches them.
+    monkeypatch.setattr(study, "_launch_process", study._launch_in_process)
+    original = Continual.gradient_step
+    calls = {"n": 0}
+
+    def crash_in_task_3(self, task, u):
+        if task.index == 2:
+            calls["n"] += 1
+            if calls["n"] == 5:  # episode 2 of room 3, after its periodic checkpoint at step 100
+                raise RuntimeError("simulated crash")
+        return original(self, task, u)
+
+    with monkeypatch.context() as m:
+        m.setattr(Continual, "gradient_step", crash_in_task_3)
+        assert cli.main(study_argv(out)) == 1
+    captured = capsys.readouterr()
+    log = out / "logs" / "continual-seed1.log"
+    assert "FAILED  continual seed1 (exit 1)" in captured.out
+    assert "not started: continual seed1 room1to2-after2 (its run failed)" in captured.out
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("drago: study incomplete: 1 job failed")
+    assert str(log) in err and "4 transfers not started" in err and "run the same command again" in err
+    assert "simulated crash" in log.read_text()
+    assert (out / "continual" / "seed1" / "checkpoints" / "resume.pt").is_file()
+    assert not (out / "continual" / "seed1" / "transfer").exists()
+    assert (out / "report" / "report.html").is_file()  # the report shows what there is
+    scratch = snapshot(out / "scratch")
+    assert len(scratch) == 2 * (1 + len(CASES))
+
+    again = plan(out)
+    assert [(j.label, j.state) for j in again.runs] == [("continual seed1", RESUME), ("scratch seed1", DONE)]
+    assert [j.state for j in again.transfers] == [START] * 4 + [DONE] * 4
+    # The finished jobs' wall times give an estimate of what is left.
+    assert any(line.startswith("  time:      about") for line in describe_plan(again))
+    assert cli.main(study_argv(out)) == 0
+    text = capsys.readouterr().out
+    jobs = [line for line in text.splitlines() if line.startswith("[")]
+    assert len(jobs) == 5 and jobs[0].startswith("[1/5] done    continual seed1 in")
+    assert not any("scratch" in line for line in jobs)
+    assert snapshot(out / "scratch") == scratch  # finished work was not redone
+    assert snapshot(out) == snapshot(reference)  # byte-identical train.csv and eval.csv everywhere
+
+
+def test_a_job_that_exits_with_an_error_fails_the_study_and_points_at_its_log(tmp_path):
+    out = tmp_path / "failing"
+    p = plan(out, methods=("continual",))
+    p.runs[0].argv = ["resume", str(out / "elsewhere"), "--no-progress"]  # exits 2: not a run directory
+    lines = []
+    result = run_study(p, echo=lines.append, in_process=True)
+    log = out / "logs" / "continual-seed1.log"
+    assert not result.ok and result.failed == p.runs and p.runs[0].returncode == 2
+    assert [j.status for j in p.transfers] == ["blocked"] * 4 and result.blocked == p.transfers
+    assert "drago: error: run directory" in log.read_text() and "does not exist" in log.read_text()
+    assert f"log: {log}" in lines[0] and str(log) in result.summary_line()
+    assert result.report_error == "no run of the study has started"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Refusals
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("case", ["other-setting", "other-transfer-episodes", "not-a-run", "locked"])
+def test_a_folder_holding_something_else_is_a_one_line_error(reference, tmp_path, capsys, case):
+    argv = study_argv(reference)
+    if case == "other-setting":
+        argv.append("train.steps_per_task=300")
+        expected = (str(reference / "continual" / "seed1"), "train.steps_per_task: 200 there, 300 here", "--out",
+                    "delete")
+    elif case == "other-transfer-episodes":
+        argv[argv.index("--transfer-episodes") + 1] = "2"
+        expected = (str(reference / "continual" / "seed1" / "transfer" / "room1to2-after2"), "--out")
+    elif case == "not-a-run":
+        out = tmp_path / "study"
+        (out / "scratch" / "seed1").mkdir(parents=True)
+        (out / "scratch" / "seed1" / "notes.txt").write_text("mine")
+        argv = study_argv(out)
+        expected = (str(out / "scratch" / "seed1"), "not a drago run")
+    else:
+        import fcntl
+
+        handle = (reference / study.LOCK_FILE).open("w")
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        expected = ("another `drago study`", str(reference))
+    try:
+        capsys.readouterr()
+        assert cli.main(argv) == 2
+    finally:
+        if case == "locked":
+            handle.close()
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("drago: error: ") and len(err.splitlines()) == 1 and "Traceback" not in err
+    for text in expected:
+        assert text in err, text
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--jobs", "0"], "--jobs"),
+    (["--seeds", "x"], "--seeds"),
+    (["--methods", "nope"], "nope"),
+    (["--transfer-episodes", "0"], "--transfer-episodes"),
+    (["agent.nope=1"], "nope"),
+])
+def test_bad_arguments_are_one_line_errors(tmp_path, capsys, argv, expected):
+    assert cli.main(["study", "smoke", "--out", str(tmp_path / "s"), "--dry-run", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("drago: error: ") and len(err.splitlines()) == 1 and expected in err
+
+
+# ---------------------------------------------------------------------------------------------------
+# Child processes
+# ---------------------------------------------------------------------------------------------------
+def test_jobs_run_in_parallel_child_processes_with_their_own_logs(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "parallel"
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    argv = ["study", "smoke", "--methods", "scratch", "--seeds", "1-2", "--out", str(out), "--jobs", "2",
+            "--no-transfer", "env.tasks=[room1]", *TINY[:-1], "train.steps_per_task=100"]
+    assert cli.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "2 at a time on" in text and "train.threads=" in text and "done    scratch seed2" in text
+    for seed in (1, 2):
+        log = (out / "logs" / f"scratch-seed{seed}.log").read_text()
+        assert f"drago train smoke --method scratch --seed {seed}" in log and "Traceback" not in log
+        assert json.loads((out / "scratch" / f"seed{seed}" / "summary.json").read_text())["complete"] is True
+    threads = {yaml.safe_load((out / "scratch" / f"seed{s}" / "config.yaml").read_text())["train"]["threads"]
+               for s in (1, 2)}
+    assert threads == {max(1, study.available_cores() // 2)}
+    assert (out / "report" / "report.html").is_file()
+
+
+def alive(pid: int) -> bool:
+    try:  # the third field of /proc/PID/stat is the state; Z: a zombie, dead but not yet reaped
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_child_dies_with_its_study(tmp_path):
+    """A SIGKILLed study leaves no orphan that would race the next study for a run directory."""
+    pid_file = tmp_path / "child.pid"
+    child = ("import os, time; from drago.study import _die_with_parent; _die_with_parent(); "
+             f"open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(60)")
+    parent = subprocess.Popen([sys.executable, "-c", "import subprocess, sys, time; "
+                               f"subprocess.Popen([sys.executable, '-c', {child!r}]); time.sleep(60)"])
+    try:
+        deadline = time.monotonic() + 30
+        while not pid_file.is_file() or not pid_file.read_text():
+            assert time.monotonic() < deadline and parent.poll() is None
+            time.sleep(0.05)
+        pid = int(pid_file.read_text())
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 10
+        while alive(pid):
+            assert time.monotonic() < deadline, "the child outlived its parent"
+            time.sleep(0.05)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+        if pid_file.is_file() and pid_file.read_text() and alive(int(pid_file.read_text())):
+            os.kill(int(pid_file.read_text()), signal.SIGKILL)

@@ -41,7 +41,8 @@ def available_tasks(domain: str) -> list[str]:
 def task_descriptions(domain: str) -> list[tuple[str, str]]:
     """(task, one line) for every task of a domain, for `drago list`."""
     if domain == "minigrid":
-        return [(name, f"{t.start} -> {t.goal}, {'dense' if t.dense else 'sparse'}: {t.description}")
+        # The catalogue's description already names start and goal.
+        return [(name, f"{t.description}; {'dense' if t.dense else 'sparse'} reward")
                 for name, t in GRID_TASKS.items()]
     return [(name, f"{DMC_TASKS[name].description}; reward {DMC_TASKS[name].reward}")
             for name in available_tasks(domain)]

@@ -2,7 +2,9 @@
 
 Three tiny smoke runs (seconds each) stand for a real comparison with gaps: continual seed 1 finished
 its two tasks, continual seed 2 stopped after the first of two (a copy of a finished run cut back to
-the state it had then), and drago has one seed of a one-task sequence.
+the state it had then), and drago has one seed of a one-task sequence. Transfers (room1to2 after 2, two
+learner episodes) of a continual and a two-task drago run, and copies of them standing for more seeds,
+test the transfer section; a one-task cheetah run tests learning curves without a known optimum.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import base64
 import csv
 import io
+import json
 import os
 import re
 import shutil
@@ -19,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from PIL import Image
 
 from drago import cli
@@ -30,6 +34,8 @@ from drago.train.run import resume
 
 SMOKE = ["--no-progress", "train.tensorboard=false", "train.steps_per_task=200", "train.eval_freq=100"]
 TABLES = ("runs", "returns", "coverage", "metrics")
+TRANSFER_TABLES = ("transfer-episodes", "transfer-env-steps")
+CASE = "room1to2-after2"
 
 
 def train(out: Path, method: str, seed: int, tasks: str) -> Path:
@@ -62,6 +68,53 @@ def runs(tmp_path_factory) -> dict[str, Path]:
                                      root / "continual-seed2"),
         "d1": train(root / "drago-seed1", "drago", 1, "[room1]"),
     }
+
+
+def add_transfer(run: Path) -> Path:
+    """room1to2 learned from the run's stage-2 world model in two learner episodes."""
+    assert cli.main(["transfer", str(run), "--no-progress", "--task", "room1to2", "--after", "2",
+                     "--episodes", "2"]) == 0
+    return run / "transfer" / CASE
+
+
+def copy_as_seed(run: Path, out: Path, seed: int, ignore: tuple[str, ...] = ()) -> Path:
+    """A copy of a run (or transfer) directory under another seed, standing for a run of that seed."""
+    shutil.copytree(run, out, ignore=shutil.ignore_patterns(*ignore))
+    for config in [out / "config.yaml", *out.glob("transfer/*/config.yaml")]:
+        data = yaml.safe_load(config.read_text())
+        data["train"]["seed"] = seed
+        config.write_text(yaml.safe_dump(data, sort_keys=False))
+    return out
+
+
+def unfinish(transfer: Path, episodes: int) -> Path:
+    """The transfer as it was after ``episodes`` learner episodes: no summary, later evaluations cut."""
+    (transfer / "summary.json").unlink()
+    with (transfer / "eval.csv").open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        columns, rows = reader.fieldnames, [r for r in reader if int(r["episode"]) <= episodes]
+    with (transfer / "eval.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    return transfer
+
+
+@pytest.fixture(scope="module")
+def transfers(runs, tmp_path_factory) -> dict[str, Path]:
+    """Sequence runs continual seeds 1-2 and drago seed 1 in one folder, transfers of continual seed 1
+    and drago seed 1 inside them; drago seeds 2 (finished) and 3 (one of two episodes) as transfer
+    directories alone, elsewhere; continual seed 2 has no transfer."""
+    root = tmp_path_factory.mktemp("with-transfers")
+    alone = tmp_path_factory.mktemp("transfers-alone")
+    c1 = root / "continual-seed1"
+    shutil.copytree(runs["c1"], c1)
+    d1 = train(root / "drago-seed1", "drago", 1, "[room1,room2]")
+    out = {"root": root, "c1": c1, "d1": d1, "c1-t": add_transfer(c1), "d1-t": add_transfer(d1)}
+    out["c2"] = copy_as_seed(c1, root / "continual-seed2", 2, ignore=("transfer",))
+    out["d2-t"] = copy_as_seed(out["d1-t"], alone / "drago-seed2", 2)
+    out["d3-t"] = unfinish(copy_as_seed(out["d1-t"], alone / "drago-seed3", 3), episodes=1)
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -285,6 +338,91 @@ def test_cli_report(runs, tmp_path, capsys, monkeypatch):
     one_line_error(capsys, ["report", str(runs["c1"]), str(broken)], "eval.csv lacks the column(s)")
     one_line_error(capsys, ["report", str(runs["c1"]), "--out", str(runs["c1"] / "config.yaml")],
                    "cannot write the report")
+
+
+# ---------------------------------------------------------------------------------------------------
+# transfers and DeepMind Control runs
+# ---------------------------------------------------------------------------------------------------
+def test_report_has_a_transfer_section(transfers, tmp_path):
+    t = transfers
+    # The folder gives the sequence runs (their transfers are found inside them); transfer directories
+    # given directly join them, one of them twice (also found inside its run), counted once.
+    html_path, md_path = build_report([t["root"], t["d2-t"], t["d3-t"], t["d1-t"]], tmp_path / "report")
+    page = parse(html_path.read_text())
+    assert set(page.tables) == {f"table-{key}" for key in (*TABLES, *TRANSFER_TABLES)}
+
+    # Transfer runs are no continual runs of their method.
+    runs = rows_by(page.tables["table-runs"], "method", "seed")
+    assert set(runs) == {("continual", "1"), ("continual", "2"), ("drago", "1")}
+    assert {row["tasks done"] for row in runs.values()} == {"2/2"}
+    assert set(rows_by(page.tables["table-returns"], "method", "task")) == {
+        (m, task) for m in ("continual", "drago") for task in ("room1", "room2")}
+
+    def summary(transfer: Path) -> dict:
+        return json.loads((transfer / "summary.json").read_text())["transfer"]["few_shot"]
+
+    number = r"-?\d\.\d\d"
+    episodes = rows_by(page.tables["table-transfer-episodes"], "case", "method")
+    assert set(episodes) == {("room1to2 after 2", "continual"), ("room1to2 after 2", "drago")}
+    continual, drago = episodes[("room1to2 after 2", "continual")], episodes[("room1to2 after 2", "drago")]
+    point = summary(t["c1-t"])["equal_episodes"]
+    assert (continual["seeds"], continual["learner episodes"], continual["total env steps"], continual["optimum"]) == (
+        "1", "2", "200", "88.0")
+    assert continual["fraction of optimum"] == f"{point['fraction_of_optimal']:.2f}"
+    assert continual["return"] == f"{point['return']:.2f}"
+    # Seeds 1 and 2 of drago finished (seed 3 has not reached episode 2); its reviewer doubles the env steps.
+    assert (drago["seeds"], drago["learner episodes"], drago["total env steps"]) == ("2", "2", "400")
+    assert re.fullmatch(rf"{number} ± {number} \[{number}, {number}\]", drago["fraction of optimum"])
+
+    # At equal env steps drago is read after one learner episode, seed 3 (unfinished) included.
+    steps = rows_by(page.tables["table-transfer-env-steps"], "case", "method")
+    continual, drago = steps[("room1to2 after 2", "continual")], steps[("room1to2 after 2", "drago")]
+    assert (continual["seeds"], continual["learner episodes"], continual["total env steps"]) == ("1", "2", "200")
+    assert (drago["seeds"], drago["learner episodes"], drago["total env steps"]) == ("3", "1", "200")
+    assert drago["fraction of optimum"].startswith(f"{summary(t['d1-t'])['equal_env_steps']['fraction_of_optimal']:.2f}")
+
+    md = md_path.read_text()
+    missing = md.split("## Missing", 1)[1]
+    assert (f"{t['d3-t']} (drago, seed 3, room1to2 after 2): unfinished, 1 of 2 learner episodes evaluated; "
+            f"no few-shot score at equal episodes yet") in missing
+    assert "continual: no transfer room1to2 after 2 for seed(s) 2" in missing
+    assert "drago: 1 seed(s) (1) against 2 for continual" in missing
+
+    # Figures: the sequence curves, the heatmap and the transfer curves (learner and total env steps).
+    figures = re.findall(r"!\[[^]]*\]\(([^)]+)\)", md)
+    assert sorted(figures) == ["curves.png", "heatmap.png", "transfer-curves.png"]
+    assert len(page.images) == 3 and all(src.startswith("data:image/png;base64,") for src in page.images)
+    image = png((md_path.parent / "transfer-curves.png").read_bytes())
+    assert image.height > 300 and not_blank(image)
+    for table in page.tables.values():
+        for row in table:
+            assert "| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |" in md.splitlines()
+
+    # A transfer directory alone is a report of its own: no sequence run, one transfer row.
+    html_path, md_path = build_report([t["d2-t"]], tmp_path / "alone")
+    page = parse(html_path.read_text())
+    assert set(page.tables) == {f"table-{key}" for key in TRANSFER_TABLES}  # the other tables: "no data"
+    alone = rows_by(page.tables["table-transfer-episodes"], "case", "method")
+    assert list(alone) == [("room1to2 after 2", "drago")] and alone[("room1to2 after 2", "drago")]["seeds"] == "1"
+    assert "## Transfer learning curves" in md_path.read_text()
+
+
+def test_dmc_runs_get_learning_curves_of_their_raw_return(tmp_path):
+    pytest.importorskip("dm_control")
+    run = tmp_path / "cheetah"
+    assert cli.main(["train", "smoke", "--method", "continual", "--out", str(run), "--no-progress",
+                     "train.tensorboard=false", "env.domain=cheetah", "env.tasks=[cheetah-run]", "env.action_repeat=4",
+                     "env.episode_length=20", "train.steps_per_task=40", "agent.seed_steps=20", "agent.batch_size=16",
+                     "train.eval_freq=80", "train.checkpoint_freq=80", "train.updates_per_episode=2",
+                     "train.heldout_episodes=0"]) == 0
+    with (run / "eval.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert rows and not any(r.get("fraction_of_optimal") for r in rows)
+    html_path, md_path = build_report([run], tmp_path / "report")
+    md = md_path.read_text()
+    assert "![Learning curves](curves.png)" in md and "raw return" in md
+    page = parse(html_path.read_text())
+    assert len(page.images) == 1 and not_blank(png((md_path.parent / "curves.png").read_bytes()))
 
 
 # ---------------------------------------------------------------------------------------------------

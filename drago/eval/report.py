@@ -1,7 +1,8 @@
 """One page summarising any set of runs: tables with confidence intervals, curves, heatmaps, gaps.
 
 :func:`build_report` reads run directories (several methods x several seeds, finished or not), groups
-them by method and writes a self-contained HTML page (inline CSS, figures as data URIs, nothing
+them by method (transfer runs, found in ``RUN_DIR/transfer/`` or given directly, apart: by test case
+and method) and writes a self-contained HTML page (inline CSS, figures as data URIs, nothing
 fetched) and a Markdown version with the figures as PNG files beside it. Both show the same tables,
 built once as data here and only rendered twice.
 
@@ -40,16 +41,20 @@ from drago.eval.coverage import (
 from drago.eval.metrics import continual_metrics
 from drago.eval.stats import summarize
 from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
+from drago.train.transfer import TRANSFER_FOLDER, transfer_summary
 
-__all__ = ["ReportError", "build_report", "find_run_dirs"]
+__all__ = ["ReportError", "build_report", "find_run_dirs", "find_transfer_dirs"]
 
 REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
 HEATMAP_PNG = "heatmap.png"
 CURVES_PNG = "curves.png"
+TRANSFER_PNG = "transfer-curves.png"
 SUMMARY_FILE = "summary.json"
 EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ("task", "env_step", "fraction_of_optimal")
+FRACTION_LABEL = "fraction of DP optimum"
+RETURN_LABEL = "return"
 DIGITS = 2
 COVERAGE_COLUMNS = (*ROOM_GROUPS, ALL)
 
@@ -64,7 +69,8 @@ class ReportError(RunDirError):
 def find_run_dirs(paths: Iterable[str | Path]) -> list[Path]:
     """Run directories named by ``paths``: each path is a run (it has ``config.yaml``) or a folder
     whose run directories below it are taken, in sorted order. The search does not look inside a run
-    directory: what lies there (``transfer/`` runs) is another kind of experiment. Duplicates are dropped.
+    directory: what lies there (``transfer/`` runs) is another kind of experiment, which
+    :func:`find_transfer_dirs` finds. Duplicates are dropped.
 
     Raises:
         ReportError: A path that does not exist, or is neither a run nor holds one.
@@ -92,6 +98,11 @@ def find_run_dirs(paths: Iterable[str | Path]) -> list[Path]:
     if not found:
         raise ReportError("no run directories given")
     return found
+
+
+def find_transfer_dirs(run_dir: Path) -> list[Path]:
+    """The transfer runs a run directory holds (``RUN_DIR/transfer/*/config.yaml``), in sorted order."""
+    return sorted(config.parent for config in (Path(run_dir) / TRANSFER_FOLDER).glob(f"*/{CONFIG_FILE}"))
 
 
 @dataclass
@@ -132,6 +143,16 @@ class Run:
     @property
     def complete(self) -> bool:
         return len(self.finished) == len(self.planned)
+
+    @property
+    def is_transfer(self) -> bool:
+        """A transfer run (a test task learned from another run's checkpoint), not a continual sequence."""
+        return self.cfg.transfer.checkpoint is not None
+
+    @property
+    def case(self) -> tuple[str, int]:
+        """A transfer's test case: (test task, as the catalogue names it, stage K)."""
+        return self.cfg.transfer.case or self.cfg.env.tasks[0], int(self.cfg.transfer.after or 0)
 
 
 def _read_summary(path: Path) -> dict[str, Any] | None:
@@ -189,15 +210,21 @@ def _number(value: Any) -> float:
         return math.nan
 
 
+def _method(run: Run) -> str:
+    """The method a run is reported under: a transfer learned without the method's extras is its own."""
+    return f"{run.method} (learner only)" if run.is_transfer and run.cfg.transfer.learner_only else run.method
+
+
 def _label_runs(runs: list[Run]) -> dict[str, list[Run]]:
     """Group runs by method, in order of first appearance; a method run under several presets is
     split by preset, since their budgets differ and averaging them would mean nothing."""
     presets: dict[str, set[str]] = {}
     for run in runs:
-        presets.setdefault(run.method, set()).add(run.cfg.preset)
+        presets.setdefault(_method(run), set()).add(run.cfg.preset)
     groups: dict[str, list[Run]] = {}
     for run in runs:
-        run.label = run.method if len(presets[run.method]) == 1 else f"{run.method} [{run.cfg.preset}]"
+        method = _method(run)
+        run.label = method if len(presets[method]) == 1 else f"{method} [{run.cfg.preset}]"
         groups.setdefault(run.label, []).append(run)
     return groups
 
@@ -439,48 +466,98 @@ def _retention_tables(groups: dict[str, list[Run]], findings: _Findings) -> list
                   f"{what}. Mean ± std [95% CI] over seeds.", columns, error_rows)]
 
 
-def _curves_png(groups: dict[str, list[Run]], tasks: list[str]) -> bytes | None:
-    """Fraction of optimum vs env step, one panel per task, one line per method with its 95% CI band."""
-    series: dict[tuple[str, str], dict[int, list[float]]] = {}
-    for label, runs in groups.items():
-        for run in runs:
-            for row in run.eval_rows:
-                value = _number(row.get("fraction_of_optimal"))
-                step = _number(row["env_step"])
-                if math.isfinite(value) and math.isfinite(step):
-                    series.setdefault((label, row["task"]), {}).setdefault(int(step), []).append(value)
-    if not series:
+@dataclass(frozen=True)
+class _Panel:
+    """One panel of a learning-curve figure: per method, the values over seeds at each x."""
+
+    title: str
+    xlabel: str
+    ylabel: str
+    series: dict[str, dict[int, list[float]]]
+
+
+def _quantity(rows: Iterable[dict[str, str]]) -> tuple[str, str]:
+    """The eval.csv column a curve shows and its axis label: the fraction of the optimum where the task
+    has one (the grid), else the raw return (DeepMind Control, whose tasks have no known optimum)."""
+    if any(math.isfinite(_number(row.get("fraction_of_optimal"))) for row in rows):
+        return "fraction_of_optimal", FRACTION_LABEL
+    return "episode_reward", RETURN_LABEL
+
+
+def _panel(title: str, xlabel: str, x_key: str, runs: dict[str, list[list[dict[str, str]]]]) -> _Panel:
+    """A panel of ``runs`` (per method label, the eval rows each of its runs shows here) against ``x_key``."""
+    y_key, ylabel = _quantity(row for per_run in runs.values() for rows in per_run for row in rows)
+    series: dict[str, dict[int, list[float]]] = {}
+    for label, per_run in runs.items():
+        for rows in per_run:
+            for row in rows:
+                x, y = _number(row.get(x_key)), _number(row.get(y_key))
+                if math.isfinite(x) and math.isfinite(y):
+                    series.setdefault(label, {}).setdefault(int(x), []).append(y)
+    return _Panel(title, xlabel, ylabel, series)
+
+
+def _reviewer_steps(rows: Iterable[dict[str, str]]) -> bool:
+    """Whether some evaluation counts env steps beyond the learner's (a reviewer's)."""
+    return any(_number(row.get("learner_env_step")) < _number(row.get("env_step")) for row in rows)
+
+
+def _panels_png(grid: list[list[_Panel]], colours: dict[str, str]) -> bytes | None:
+    """Learning curves: rows x columns of panels, one line per method (mean over seeds) with its 95%
+    bootstrap CI band where more than one seed has a value; empty panels are left blank."""
+    if not any(panel.series for row in grid for panel in row):
         return None
     from matplotlib.figure import Figure as MplFigure
 
-    shown = [t for t in tasks if any(task == t for _, task in series)]
-    fig = MplFigure(figsize=(0.6 + 3.0 * len(shown), 3.2), layout="constrained")
-    axes = fig.subplots(1, len(shown), squeeze=False, sharey=True)[0]
-    colours = {label: f"C{i}" for i, label in enumerate(groups)}
-    for ax, task in zip(axes, shown):
-        for label in groups:
-            points = series.get((label, task))
-            if not points:
-                continue
-            steps = sorted(points)
-            stats = [summarize(points[s]) for s in steps]
-            ax.plot(steps, [s.mean for s in stats], color=colours[label], label=label, marker=".")
-            if any(s.n > 1 for s in stats):
-                ax.fill_between(steps, [s.ci_low for s in stats], [s.ci_high for s in stats],
-                                color=colours[label], alpha=0.2, linewidth=0)
-        ax.set_title(task, fontsize=10)
-        ax.set_xlabel("env steps in the task", fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=8)
-    axes[0].set_ylabel("fraction of DP optimum", fontsize=9)
+    n_rows, n_cols = len(grid), len(grid[0])
+    same = all(panel.ylabel == FRACTION_LABEL for row in grid for panel in row)
+    fig = MplFigure(figsize=(0.6 + 3.0 * n_cols, 0.4 + 2.8 * n_rows), layout="constrained")
+    axes = fig.subplots(n_rows, n_cols, squeeze=False, sharey="all" if same else "col")
+    for i, row in enumerate(grid):
+        for j, panel in enumerate(row):
+            ax = axes[i][j]
+            for label, colour in colours.items():
+                points = panel.series.get(label)
+                if not points:
+                    continue
+                steps = sorted(points)
+                stats = [summarize(points[s]) for s in steps]
+                ax.plot(steps, [s.mean for s in stats], color=colour, label=label, marker=".")
+                if any(s.n > 1 for s in stats):
+                    ax.fill_between(steps, [s.ci_low for s in stats], [s.ci_high for s in stats],
+                                    color=colour, alpha=0.2, linewidth=0)
+            if i == 0:
+                ax.set_title(panel.title, fontsize=10)
+            ax.set_xlabel(panel.xlabel, fontsize=9)
+            if j == 0 or not same:
+                ax.set_ylabel(panel.ylabel, fontsize=9)
+            ax.grid(alpha=0.3)
+            ax.tick_params(labelsize=8)
     legend: dict[str, Any] = {}  # a method may be missing from some panels: one entry each, in order
-    for ax in axes:
+    for ax in axes.flat:
         for handle, label in zip(*ax.get_legend_handles_labels()):
             legend.setdefault(label, handle)
     fig.legend(list(legend.values()), list(legend), loc="outside right upper", fontsize=9, frameon=False)
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=80)
     return buffer.getvalue()
+
+
+def _curves_png(groups: dict[str, list[Run]], tasks: list[str], colours: dict[str, str]) -> bytes | None:
+    """Return vs env steps, one panel per task; a second row against learner env steps only when a
+    reviewer spent env steps of its own in some run."""
+    by_task = {task: {label: [[r for r in run.eval_rows if r["task"] == task] for run in runs]
+                      for label, runs in groups.items()} for task in tasks}
+    shown = [t for t in tasks if any(rows for per_run in by_task[t].values() for rows in per_run)]
+    if not shown:
+        return None
+    rows = [r for runs in groups.values() for run in runs for r in run.eval_rows]
+    if _reviewer_steps(rows):
+        grid = [[_panel(t, "learner env steps in the task", "learner_env_step", by_task[t]) for t in shown],
+                [_panel(t, "total env steps in the task", "env_step", by_task[t]) for t in shown]]
+    else:
+        grid = [[_panel(t, "env steps in the task", "env_step", by_task[t]) for t in shown]]
+    return _panels_png(grid, colours)
 
 
 def _heatmap(groups: dict[str, list[Run]]) -> bytes | None:
@@ -519,6 +596,8 @@ def _gaps(groups: dict[str, list[Run]], tasks: list[str], findings: _Findings) -
                                             f"stage has no coverage or heatmap")
             if run.finished and not run.eval_rows:
                 findings.missing.append(f"{where}: no {EVAL_FILE}, so no learning curve")
+    if not groups:
+        return
     most = max(len(runs) for runs in groups.values())
     leader = next(label for label, runs in groups.items() if len(runs) == most)
     for label, runs in groups.items():
@@ -541,6 +620,130 @@ def _gaps(groups: dict[str, list[Run]], tasks: list[str], findings: _Findings) -
                 short.setdefault(reached, []).append(task)
         for reached, names in short.items():
             findings.missing.append(f"{label}: {', '.join(names)} finished by {reached} of {len(runs)} runs")
+
+
+# ---------------------------------------------------------------------------------------------------
+# transfers (spec §4.2-4.3): test tasks learned from a run's stage-K world model
+# ---------------------------------------------------------------------------------------------------
+Case = tuple[str, int]
+
+_FEW_SHOT = (
+    ("equal_episodes", "transfer-episodes", "Transfer: few-shot score at equal learner episodes",
+     "Evaluation return on each test case (a test task learned from the world model a run of the method saved "
+     "after stage K, spec §4.2-4.3) after the same number of learner episodes (the transfer's few-shot "
+     "episodes, 20 by default; the paper's reading), as a fraction of the task's DP optimum where it has "
+     "one (grid) and as raw return: mean ± std [95% bootstrap CI of the mean] over seeds; a single seed "
+     "shows its value alone. Seeds counts the transfers that have reached the score."),
+    ("equal_env_steps", "transfer-env-steps", "Transfer: few-shot score at equal env steps",
+     "The same score read at the last evaluation whose total env steps (learner plus reviewer) stay within "
+     "what a learner alone spends in the few-shot episodes, so a method whose reviewer collects env steps "
+     "of its own (DRAGO) is read after fewer learner episodes; without a reviewer both readings coincide. "
+     "Mean ± std [95% CI] over seeds."),
+)
+
+
+def _case_name(case: Case) -> str:
+    return f"{case[0]} after {case[1]}"
+
+
+def _transfer_block(run: Run) -> dict[str, Any] | None:
+    """A transfer's few-shot scores: its summary's once it has finished, else computed in memory from
+    its eval.csv (the scores it has reached so far; nothing is written)."""
+    block = (run.summary or {}).get("transfer") if run.complete else None
+    if isinstance(block, dict) and isinstance(block.get("few_shot"), dict):
+        return block
+    try:
+        return transfer_summary(run.cfg, run.path, [])
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+        return None  # an unreadable eval.csv: read_run has reported it already
+
+
+def _distinct(values: Iterable[Any], digits: int = 0) -> str:
+    """The distinct values of a column over seeds, joined, so that one differing value stands out."""
+    shown = [f"{n:.{digits}f}" for n in (_number(v) for v in values) if math.isfinite(n)]
+    return ", ".join(dict.fromkeys(shown)) or "–"
+
+
+def _transfer_tables(tgroups: dict[str, list[Run]], cases: list[Case],
+                     blocks: dict[Path, dict[str, Any] | None]) -> list[Table]:
+    tables = []
+    for which, key, title, caption in _FEW_SHOT:
+        rows = []
+        for case in cases:
+            for label, runs in tgroups.items():
+                mine = [run for run in runs if run.case == case]
+                if not mine:
+                    continue
+                points = [p for p in ((blocks[run.path] or {}).get("few_shot", {}).get(which) for run in mine) if p]
+                fraction, _ = _fmt([_number(p.get("fraction_of_optimal")) for p in points])
+                returns, _ = _fmt([_number(p.get("return")) for p in points])
+                rows.append((_case_name(case), label, str(len(points)), _distinct(p.get("episode") for p in points),
+                             _distinct(p.get("total_env_steps") for p in points), fraction, returns,
+                             _distinct(((blocks[run.path] or {}).get("optimal_return") for run in mine), 1)))
+        tables.append(Table(key, title, caption, ("case", "method", "seeds", "learner episodes", "total env steps",
+                                                  "fraction of optimum", "return", "optimum"), rows))
+    return tables
+
+
+def _transfer_png(tgroups: dict[str, list[Run]], cases: list[Case], colours: dict[str, str]) -> bytes | None:
+    """Per case (columns): return vs learner env steps (top) and vs total env steps (bottom)."""
+    def runs_of(case: Case) -> dict[str, list[list[dict[str, str]]]]:
+        return {label: [run.eval_rows for run in runs if run.case == case] for label, runs in tgroups.items()}
+
+    grid = [[_panel(_case_name(case), "learner env steps", "learner_env_step", runs_of(case)) for case in cases],
+            [_panel(_case_name(case), "total env steps (learner + reviewer)", "env_step", runs_of(case))
+             for case in cases]]
+    return _panels_png(grid, colours)
+
+
+def _transfer_gaps(groups: dict[str, list[Run]], tgroups: dict[str, list[Run]], cases: list[Case],
+                   blocks: dict[Path, dict[str, Any] | None], findings: _Findings) -> None:
+    """Unfinished transfers, scores not reached, cases some method or seed lacks, uneven few-shot episodes."""
+    for label, runs in tgroups.items():
+        for run in runs:
+            where = f"{run.path} ({label}, seed {run.seed}, {_case_name(run.case)})"
+            block = blocks[run.path]
+            if block is None:
+                findings.missing.append(f"{where}: no few-shot scores (unreadable {EVAL_FILE})")
+                continue
+            parts = []
+            if not run.complete:
+                done = max((int(e) for e in (_number(r.get("episode")) for r in run.eval_rows) if math.isfinite(e)),
+                           default=0)
+                parts.append(f"unfinished, {done} of {block.get('episodes_planned')} learner episodes evaluated")
+            absent = [what.replace("_", " ") for what in ("equal_episodes", "equal_env_steps")
+                      if not block["few_shot"].get(what)]
+            if absent:
+                parts.append(f"no few-shot score at {' or '.join(absent)} yet")
+            if parts:
+                findings.missing.append(f"{where}: {'; '.join(parts)}")
+    domains = {run.case: run.cfg.env.domain for runs in tgroups.values() for run in runs}
+
+    def applies(run: Run, case: Case) -> bool:  # a sequence run that could have this transfer
+        return run.cfg.env.domain == domains[case] and case[1] <= len(run.planned)
+
+    for label in dict.fromkeys([*groups, *tgroups]):
+        transfers, sequence = tgroups.get(label, []), groups.get(label, [])
+        for case in cases:
+            expected = {run.seed for run in transfers} | {run.seed for run in sequence if applies(run, case)}
+            have = sorted(run.seed for run in transfers if run.case == case)
+            lacking = sorted(expected - set(have))
+            if lacking:
+                findings.missing.append(f"{label}: no transfer {_case_name(case)} for seed(s) "
+                                        f"{', '.join(map(str, lacking))}")
+            repeated = sorted({s for s in have if have.count(s) > 1})
+            if repeated:
+                findings.missing.append(f"{label}: seed(s) {', '.join(map(str, repeated))} of transfer "
+                                        f"{_case_name(case)} appear in more than one run, so those runs are not "
+                                        f"independent samples")
+    for case in cases:
+        episodes = {label: _distinct((blocks[run.path] or {}).get("few_shot_episodes") for run in runs
+                                     if run.case == case) for label, runs in tgroups.items()}
+        episodes = {label: e for label, e in episodes.items() if e != "–"}
+        if len(set(episodes.values())) > 1 or any("," in e for e in episodes.values()):
+            findings.missing.append(f"{_case_name(case)}: few-shot scores read after different numbers of learner "
+                                    f"episodes ({'; '.join(f'{k}: {v}' for k, v in episodes.items())}), so they "
+                                    f"do not compare")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -632,7 +835,9 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
 
     Args:
         run_dirs: Run directories, or folders holding run directories (see :func:`find_run_dirs`).
-            Any mix of methods and seeds, finished or not.
+            Any mix of methods and seeds, finished or not. The transfer runs each run holds
+            (``RUN_DIR/transfer/*``) are reported too; a transfer run given directly is one of them,
+            never a continual run of its method.
         out_dir: Output folder, created if needed; nothing is written anywhere else.
 
     Returns:
@@ -643,18 +848,37 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         drago.config.ConfigError: An invalid ``config.yaml``.
         drago.train.checkpoint.CheckpointError: A corrupt checkpoint.
     """
-    runs = [read_run(path) for path in find_run_dirs(run_dirs)]
-    groups = _label_runs(runs)
-    tasks = _task_order(runs)
+    given = [read_run(path) for path in find_run_dirs(run_dirs)]
+    runs = [run for run in given if not run.is_transfer]
+    transfers = [run for run in given if run.is_transfer]
     findings = _Findings()
+    seen = {run.path.resolve() for run in given}
+    for run in runs:
+        for path in find_transfer_dirs(run.path):
+            if path.resolve() in seen:
+                continue
+            seen.add(path.resolve())
+            found = read_run(path)
+            if found.is_transfer:
+                transfers.append(found)
+            else:
+                findings.missing.append(f"{path}: not a transfer run (no transfer.checkpoint in its "
+                                        f"{CONFIG_FILE}); left out")
+    groups = _label_runs(runs)
+    found_groups = _label_runs(transfers)
+    tgroups = {label: found_groups[label] for label in dict.fromkeys([*groups, *found_groups]) if label in found_groups}
+    colours = {label: f"C{i % 10}" for i, label in enumerate(dict.fromkeys([*groups, *tgroups]))}
+    tasks = _task_order(runs)
     coverage = {run.path: _coverage(run, findings) for run in runs}
 
     sections: list[Section] = [_runs_table(groups), _returns_table(groups, tasks)]
-    curves = _curves_png(groups, tasks)
+    curves = _curves_png(groups, tasks, colours)
     if curves is not None:
-        sections.append(Figure("curves", "Learning curves", "Evaluation return as a fraction of the DP optimum "
-                               "during each task: the mean over seeds with its 95% bootstrap CI as a band "
-                               "(no band for a single seed).", curves, CURVES_PNG))
+        sections.append(Figure("curves", "Learning curves", "Evaluation return during each task, as a fraction of "
+                               "the DP optimum (grid) or raw return (DeepMind Control, no known optimum), against "
+                               "the task's env steps (learner plus reviewer; when a reviewer spent any, the top "
+                               "row is against the learner's env steps alone): the mean over seeds with its 95% "
+                               "bootstrap CI as a band (no band for a single seed).", curves, CURVES_PNG))
     sections += [_coverage_table(groups, coverage), _metrics_table(groups, coverage, findings)]
     sections += _retention_tables(groups, findings)  # DeepMind Control runs only
     heatmap = _heatmap(groups)
@@ -665,6 +889,18 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
                                "light = well predicted, one colour scale for all panels, walls and blocks "
                                "grey. The stage's task start (○) and goal (★) are marked; a red × is a cell "
                                "with a non-finite prediction.", heatmap, HEATMAP_PNG))
+    if transfers:
+        cases = sorted({run.case for run in transfers})
+        blocks = {run.path: _transfer_block(run) for run in transfers}
+        sections += _transfer_tables(tgroups, cases, blocks)
+        transfer_curves = _transfer_png(tgroups, cases, colours)
+        if transfer_curves is not None:
+            sections.append(Figure("transfer-curves", "Transfer learning curves", "Evaluation return on each test "
+                                   "case (columns) as a fraction of the DP optimum (grid) or raw return (DeepMind "
+                                   "Control), against the learner's env steps (top) and the total env steps, "
+                                   "learner plus reviewer (bottom): the mean over seeds with its 95% bootstrap CI "
+                                   "as a band (no band for a single seed).", transfer_curves, TRANSFER_PNG))
+        _transfer_gaps(groups, tgroups, cases, blocks, findings)
     _gaps(groups, tasks, findings)
     sections.append(Notes("missing", "Missing", "What these runs do not (yet) provide.",
                           findings.missing or ["Nothing: every run finished every task of its sequence, "
@@ -673,13 +909,14 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         sections.append(Notes("notes", "Notes", "How the numbers above were obtained.", findings.notes))
 
     seeds = ", ".join(f"{label}: {len(r)} run{'s' if len(r) != 1 else ''}" for label, r in groups.items())
-    meta = f"Generated {datetime.now().strftime('%Y-%m-%d %H:%M')} from {len(runs)} run directories ({seeds})."
+    meta = f"Generated {datetime.now().strftime('%Y-%m-%d %H:%M')} from {len(runs)} run directories ({seeds or 'none'})"
+    meta += f" and {len(transfers)} transfer run{'s' * (len(transfers) != 1)}." if transfers else "."
     title = "DRAGO report"
     out = Path(out_dir)
     html_path, md_path = out / REPORT_HTML, out / REPORT_MD
     try:
         out.mkdir(parents=True, exist_ok=True)
-        for figure_file in (CURVES_PNG, HEATMAP_PNG):
+        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG):
             (out / figure_file).unlink(missing_ok=True)  # a figure from an earlier report must not linger
         for section in sections:
             if isinstance(section, Figure):

@@ -33,6 +33,7 @@ from drago.envs.fourrooms import (
     traversable_cells,
 )
 from drago.envs.tasks import get_grid_task
+from drago.train.checkpoint import task_checkpoint_path
 from drago.train.run import RunDirError, read_run_config
 
 __all__ = [
@@ -46,6 +47,7 @@ __all__ = [
     "cell_scores",
     "coverage_of_run",
     "decode_batch",
+    "finished_task_checkpoints",
     "format_table",
     "grid_coverage",
     "grid_transitions",
@@ -243,6 +245,13 @@ def grid_coverage(predictor: Predictor) -> CoverageResult:
     return CoverageResult(correct=correct, score=score, predicted=predicted, rooms=rooms)
 
 
+def finished_task_checkpoints(run_dir: Path, cfg: Config) -> list[RunCheckpoint]:
+    """The task checkpoints a run has written so far, in stage order."""
+    found = [RunCheckpoint(stage=k, task=name, path=task_checkpoint_path(run_dir, cfg.env.tasks, k))
+             for k, name in enumerate(cfg.env.tasks, start=1)]
+    return [c for c in found if c.path.is_file()]
+
+
 def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
     """The run's config and its finished tasks' checkpoints, in task order.
 
@@ -258,10 +267,7 @@ def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
     if cfg.env.domain != GRID_DOMAIN:
         raise CoverageError(f"{run_dir} is a '{cfg.env.domain}' run; coverage is defined for the "
                             f"'{GRID_DOMAIN}' grid only")
-    # The documented layout of drago.train.checkpoint: checkpoints/task<k>_<name>.pt, k = index + 1.
-    found = [RunCheckpoint(stage=index + 1, task=name, path=run_dir / "checkpoints" / f"task{index + 1}_{name}.pt")
-             for index, name in enumerate(cfg.env.tasks)]
-    found = [c for c in found if c.path.is_file()]
+    found = finished_task_checkpoints(run_dir, cfg)
     if not found:
         raise CoverageError(f"{run_dir} has no task checkpoint yet (the first task has not finished)")
     return cfg, found

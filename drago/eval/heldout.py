@@ -30,7 +30,7 @@ import numpy as np
 
 from drago.agent.losses import LOG_EPS
 from drago.config import Config
-from drago.eval.coverage import GRID_DOMAIN, RunCheckpoint, write_rows_csv
+from drago.eval.coverage import GRID_DOMAIN, RunCheckpoint, finished_task_checkpoints, write_rows_csv
 from drago.train.run import RunDirError, read_run_config
 
 __all__ = ["CSV_COLUMNS", "HELDOUT_FOLDER", "RETENTION_FILE", "HeldoutError", "HeldoutSet", "format_table",
@@ -151,9 +151,7 @@ def heldout_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint
     if cfg.env.domain == GRID_DOMAIN:
         raise HeldoutError(f"{run_dir} is a '{GRID_DOMAIN}' run; held-out retention is for continuous states: "
                            f"use `drago eval coverage` for the grid")
-    found = [RunCheckpoint(stage=index + 1, task=name, path=run_dir / "checkpoints" / f"task{index + 1}_{name}.pt")
-             for index, name in enumerate(cfg.env.tasks)]
-    found = [c for c in found if c.path.is_file()]
+    found = finished_task_checkpoints(run_dir, cfg)
     if not found:
         raise HeldoutError(f"{run_dir} has no task checkpoint yet (the first task has not finished)")
     return cfg, found

@@ -116,3 +116,8 @@ def _from_safe(value: Any) -> Any:
             return int(value["__bigint__"])
         return {k: _from_safe(v) for k, v in value.items()}
     return value
+
+
+def task_checkpoint_path(run_dir: str | Path, tasks: tuple[str, ...] | list[str], stage: int) -> Path:
+    """Where a run saves its state after its ``stage``-th task (1-based): ``checkpoints/task<k>_<name>.pt``."""
+    return Path(run_dir) / "checkpoints" / f"task{stage}_{tasks[stage - 1]}.pt"

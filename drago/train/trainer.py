@@ -25,7 +25,7 @@ from drago.agent.networks import WorldModel
 from drago.config import Config
 from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
 from drago.envs import EnvSpec, make_env, task_optimum
-from drago.train.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from drago.train.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state, task_checkpoint_path
 from drago.train.logger import RunLogger
 
 @dataclass
@@ -85,7 +85,7 @@ class Trainer:
 
     # ---- paths and bookkeeping -------------------------------------------------------------
     def task_checkpoint(self, index: int) -> Path:
-        return self.ckpt_dir / f"task{index + 1}_{self.cfg.env.tasks[index]}.pt"
+        return task_checkpoint_path(self.run_dir, self.cfg.env.tasks, index + 1)
 
     def start_checkpoint(self, index: int) -> Path | None:
         """The checkpoint task ``index`` starts from: the previous task's, or for the first task of a

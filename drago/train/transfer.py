@@ -46,6 +46,7 @@ from drago.agent.agent import Agent
 from drago.agent.networks import linear_schedule
 from drago.config import Config, ConfigError, validate
 from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask
+from drago.train.checkpoint import task_checkpoint_path
 from drago.train.run import CONFIG_FILE, RunDirError, new_run, read_run_config, resume
 from drago.train.trainer import Trainer
 
@@ -82,7 +83,7 @@ def paper_cases(domain: str) -> tuple[TransferCase, ...]:
 
 def stage_checkpoint(run_dir: Path, cfg: Config, after: int) -> Path:
     """The task checkpoint a run wrote after its ``after``-th task (1-based)."""
-    return Path(run_dir) / "checkpoints" / f"task{after}_{cfg.env.tasks[after - 1]}.pt"
+    return task_checkpoint_path(run_dir, cfg.env.tasks, after)
 
 
 def finished_stages(run_dir: Path, cfg: Config) -> list[int]:

@@ -48,6 +48,10 @@ class AgentConfig:
     discount: float = 0.99
     batch_size: int = 512
     lr: float = 1e-3
+    # None: a constant lr (paper and code). Otherwise every optimizer of a task decays linearly lr -> lr_final
+    # over its first lr_schedule_steps task steps; optimizers start afresh with each task (spec §3.10).
+    lr_final: float | None = None
+    lr_schedule_steps: int = 300_000
     rho: float = 0.5  # temporal weight of the t-th loss term
     consistency_coef: float = 2.0
     reward_coef: float = 0.5
@@ -396,11 +400,14 @@ def validate(cfg: Config) -> None:
         "agent.std_schedule_steps": cfg.agent.std_schedule_steps,
         "train.steps_per_task": cfg.train.steps_per_task, "train.eval_freq": cfg.train.eval_freq,
         "train.eval_episodes": cfg.train.eval_episodes, "train.checkpoint_freq": cfg.train.checkpoint_freq,
-        "agent.lr": cfg.agent.lr,
+        "agent.lr": cfg.agent.lr, "agent.lr_schedule_steps": cfg.agent.lr_schedule_steps,
     }
     for key, value in positive.items():
         if value <= 0:
             raise ConfigError(f"setting '{key}' must be positive, got {value}")
+    if cfg.agent.lr_final is not None and not 0 < cfg.agent.lr_final <= cfg.agent.lr:
+        raise ConfigError(f"setting 'agent.lr_final' must lie in (0, agent.lr={cfg.agent.lr}], got {cfg.agent.lr_final}; "
+                          "leave it unset (null) for a constant lr")
     for key in ("learner_steps_per_task", "reviewer_steps_per_task", "eval_every_episodes"):
         value = getattr(cfg.train, key)
         if value is not None and value <= 0:

@@ -140,6 +140,11 @@ class Agent:
         """
         c = self.cfg
         self.std_floor = linear_schedule(c.std_schedule_start, c.min_std, c.std_schedule_steps, step)
+        if c.lr_final is not None:
+            lr = linear_schedule(c.lr, c.lr_final, c.lr_schedule_steps, step)
+            for optimizer in (self.world_optimizer, self.model_optimizer, self.policy_optimizer):
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
         with self.autocast():
             losses = self._model_losses(
                 self.world_model, self.heads, batch.obs, batch.actions, batch.rewards, batch.next_obs,

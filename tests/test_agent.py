@@ -724,3 +724,33 @@ def test_compiled_agent_trains_on_the_smoke_preset(tmp_path):
         for key in ("learner_value_loss", "reviewer_consistency_loss", "reviewer_value_loss", "vae_loss",
                     "rehearsal_loss"):
             assert math.isfinite(float(r[key])), key
+
+
+@pytest.mark.parametrize("lr_final, step, expected_lr", [
+    (None, 9000, 1e-3),  # the default: a constant lr, as in the paper and the code
+    (1e-4, 0, 1e-3),
+    (1e-4, 5000, 5.5e-4),  # halfway down the linear decay
+    (1e-4, 20_000, 1e-4),  # constant after the schedule
+])
+def test_lr_decay_sets_the_size_of_every_optimizer_step(lr_final, step, expected_lr):
+    # Adam's first step moves every parameter with a nonzero gradient by lr (to within eps): the step size
+    # shows the lr in force for the world model, the critics and reward, and the policy alike.
+    cfg = AgentConfig(mlp_dim=MLP, horizon=H, batch_size=B, lr=1e-3, lr_final=lr_final, lr_schedule_steps=10_000,
+                      update_freq=10 ** 9)
+    wm = make_world()
+    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)
+    perturb_last_layers(agent.heads)
+    modules = {"world model": wm.dynamics, "reward": agent.heads.reward, "critics": agent.heads.q,
+               "policy": agent.heads.policy}
+    before = {name: [p.detach().clone() for p in m.parameters()] for name, m in modules.items()}
+    agent.update(make_batch(), step=step)
+    for name, module in modules.items():
+        moved = torch.cat([(p.detach() - p0).abs().flatten() for p, p0 in zip(module.parameters(), before[name])])
+        assert moved.max().item() == pytest.approx(expected_lr, rel=1e-3), name
+
+
+def test_lr_final_must_not_exceed_lr():
+    from drago.config import ConfigError, load_config
+    with pytest.raises(ConfigError, match="agent.lr_final"):
+        load_config("smoke", overrides=["agent.lr_final=1e-2"])
+    assert load_config("smoke", overrides=["agent.lr_final=1e-4"]).agent.lr_final == 1e-4

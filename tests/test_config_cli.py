@@ -28,7 +28,8 @@ def test_load_smoke_preset_layers_on_its_bases():
     assert (cfg.agent.mlp_dim, cfg.agent.horizon, cfg.agent.batch_size) == (32, 3, 32)
     assert (cfg.train.steps_per_task, cfg.train.checkpoint_freq, cfg.train.threads) == (400, 200, 1)
     # Inherited from minigrid-cpu (not overridden by smoke) and from minigrid.
-    assert cfg.agent.elite_selection == "argmax"
+    assert (cfg.agent.elite_selection, cfg.agent.temperature, cfg.agent.lr_final) == ("sample", 2.0, 1e-4)
+    assert cfg.agent.lr_schedule_steps == cfg.train.steps_per_task == 400
     assert cfg.env.tasks == ("room1", "room2", "room3", "room4")
     assert cfg.env.episode_length == 100
     # Untouched defaults (spec §2.6).

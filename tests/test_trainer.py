@@ -114,7 +114,7 @@ def test_task_checkpoint_holds_the_world_model_and_no_training_state(reference):
 
 
 @pytest.mark.parametrize("case", ["wrong-domain", "wrong-kind", "truncated", "foreign-torch-file", "missing",
-                                  "garbage", "newer-version"])
+                                  "garbage", "short-text", "pickle-header-only", "newer-version"])
 def test_load_checkpoint_rejects_bad_files_with_one_line(reference, tmp_path, case):
     good = task_checkpoints(reference)[0]
     kwargs = {"kind": "task", "domain": "minigrid"}
@@ -130,6 +130,10 @@ def test_load_checkpoint_rejects_bad_files_with_one_line(reference, tmp_path, ca
         torch.save({"world_model": {"w": torch.zeros(2)}, "kind": "task"}, path)
     elif case == "garbage":
         path.write_bytes(os.urandom(4096))
+    elif case == "short-text":
+        path.write_bytes(b"junk")
+    elif case == "pickle-header-only":
+        path.write_bytes(b"\x80\x02")
     elif case == "newer-version":
         save_checkpoint(path, {"world_model": {}}, kind="task", domain="minigrid")
         data = torch.load(path, weights_only=True)

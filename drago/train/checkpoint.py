@@ -12,9 +12,7 @@ Two kinds live in a run's ``checkpoints/`` folder:
 from __future__ import annotations
 
 import os
-import pickle
 import tempfile
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -77,8 +75,10 @@ def load_checkpoint(path: str | Path, kind: str | None = None, domain: str | Non
     try:
         # Only tensors and plain Python values are stored, so nothing executable is ever unpickled.
         data = torch.load(path, map_location=map_location, weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError):
-        # torch's own message advises loosening weights_only, which is the wrong advice here.
+    except Exception:
+        # Damaged bytes surface as whatever the unpickler trips on first (struct.error for a few bytes of
+        # text, UnicodeDecodeError, ...); any failure to read means the same thing. torch's own message
+        # advises loosening weights_only, which is the wrong advice here.
         raise CheckpointError(f"checkpoint {path} is corrupt or not a drago checkpoint; "
                               "delete it to redo that part of the run") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:

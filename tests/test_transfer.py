@@ -204,24 +204,30 @@ def test_same_seed_gives_identical_transfer_logs(drago_transfer, sources, tmp_pa
         assert (again / name).read_bytes() == (drago_transfer / name).read_bytes(), name
 
 
+def crash_transfer_at_gradient_step(monkeypatch, n: int, source: Path, *args: str) -> None:
+    """Run a transfer that raises at its n-th DRAGO gradient step, as a crash would stop it."""
+    original = Drago.gradient_step
+    calls = {"n": 0}
+
+    def crash_at_step_n(self, task, u):
+        calls["n"] += 1
+        if calls["n"] == n:
+            raise RuntimeError("simulated crash")
+        return original(self, task, u)
+
+    with monkeypatch.context() as m:
+        m.setattr(Drago, "gradient_step", crash_at_step_n)
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            transfer(source, *args)
+
+
 def test_resume_after_a_crash_gives_the_uninterrupted_logs(sources, tmp_path, monkeypatch):
     args = ["--task", "room1to2", "--after", "2", "--episodes", "3"]
     reference, crashed = tmp_path / "reference", tmp_path / "crashed"
     assert transfer(sources["drago"], *args, "--out", str(reference)) == 0
 
-    original = Drago.gradient_step
-    calls = {"n": 0}
-
-    def crash_in_the_third_iteration(self, task, u):
-        calls["n"] += 1
-        if calls["n"] == 25:  # 10 updates per iteration; resume.pt was written after iterations 1 and 2
-            raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Drago, "gradient_step", crash_in_the_third_iteration)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            transfer(sources["drago"], *args, "--out", str(crashed))
+    # 10 updates per iteration; resume.pt was written after iterations 1 and 2.
+    crash_transfer_at_gradient_step(monkeypatch, 25, sources["drago"], *args, "--out", str(crashed))
     assert load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")["episodes"] == 2
     assert not (crashed / "checkpoints" / "task1_room1to2.pt").exists()
 
@@ -481,19 +487,8 @@ def test_x2y_transfer_is_deterministic_and_resumes_after_a_crash(jump2run, cheet
     for name in ("train.csv", "eval.csv"):
         assert (again / name).read_bytes() == (jump2run["dir"] / name).read_bytes(), name
 
-    original = Drago.gradient_step
-    calls = {"n": 0}
-
-    def crash_in_the_third_iteration(self, task, u):
-        calls["n"] += 1
-        if calls["n"] == 12:  # 5 updates per iteration; resume.pt was written after iterations 1 and 2
-            raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Drago, "gradient_step", crash_in_the_third_iteration)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            transfer(cheetah_source, *args, "--out", str(crashed))
+    # 5 updates per iteration; resume.pt was written after iterations 1 and 2.
+    crash_transfer_at_gradient_step(monkeypatch, 12, cheetah_source, *args, "--out", str(crashed))
     assert load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")["episodes"] == 2
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv"):

@@ -32,7 +32,6 @@ import argparse
 import gc
 import json
 import platform
-import resource
 import statistics
 import time
 from pathlib import Path
@@ -47,6 +46,7 @@ from drago.config import load_config
 from drago.continual.base import Budget, TaskState, buffer_capacity
 from drago.continual.drago import Drago
 from drago.envs import env_spec, make_env
+from drago.train.resources import PeakMemory
 from drago.train.trainer import build_world_model, run_episode
 
 DEFAULT_PRESETS = ("minigrid", "minigrid-cpu", "cheetah-cpu")
@@ -84,40 +84,6 @@ def count_flops(fn) -> int:
     with FlopCounterMode(display=False) as counter:
         fn()
     return int(counter.get_total_flops())
-
-
-class PeakMemory:
-    """Peak resident set size of this process from ``start()`` on (Linux resets it through clear_refs)."""
-
-    def __init__(self, device: torch.device):
-        self.device = device
-        self.resettable = False
-
-    def start(self) -> None:
-        gc.collect()
-        try:
-            Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
-            self.resettable = True
-        except OSError:
-            self.resettable = False
-        if self.device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(self.device)
-
-    def read(self) -> dict[str, float]:
-        out: dict[str, float] = {}
-        status = Path("/proc/self/status")
-        hwm = None
-        if self.resettable and status.exists():
-            for line in status.read_text().splitlines():
-                if line.startswith("VmHWM:"):
-                    hwm = int(line.split()[1]) / 1024
-        if hwm is None:  # ru_maxrss: the peak of the whole process so far (KiB on Linux)
-            hwm = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-            out["peak_rss_is_process_lifetime"] = 1.0
-        out["peak_rss_mib"] = hwm
-        if self.device.type == "cuda":
-            out["cuda_max_allocated_mib"] = torch.cuda.max_memory_allocated(self.device) / 2**20
-        return out
 
 
 # ---- a DRAGO task-2 state ----------------------------------------------------------------------------

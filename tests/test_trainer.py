@@ -84,6 +84,8 @@ def test_smoke_run_writes_every_output(reference):
     assert summary["complete"] is True
     assert [t["name"] for t in summary["tasks"]] == list(TASKS)
     assert all(t["steps"] == 400 and t["episodes"] == 4 for t in summary["tasks"])
+    # The contention-free costs each task reports (what the method cost table is made of).
+    assert all(t["cpu_time_s"] > 0 and t["peak_rss_mib"] > 50 for t in summary["tasks"])
 
     train_rows = read_csv(reference / "train.csv")
     assert [(r["task"], int(r["episode"])) for r in train_rows] == [(t, e) for t in TASKS for e in range(1, 5)]
@@ -218,7 +220,8 @@ def test_resume_after_crash_replays_the_uninterrupted_run(reference, tmp_path, m
     ckpt = run / "checkpoints"
     assert (ckpt / "resume.pt").is_file() and (ckpt / "task1_room1.pt").is_file()
     assert not (ckpt / "task2_room2.pt").exists()
-    assert load_checkpoint(ckpt / "resume.pt", kind="resume")["task_index"] == 1
+    snapshot = load_checkpoint(ckpt / "resume.pt", kind="resume")
+    assert snapshot["task_index"] == 1 and snapshot["cpu_elapsed"] > 0
     rows = read_csv(run / "train.csv")
     assert rows[-1]["task"] == "room2" and rows[-1]["episode"] == "3"  # a row past the checkpoint
     assert json.loads((run / "summary.json").read_text())["complete"] is False
@@ -227,6 +230,8 @@ def test_resume_after_crash_replays_the_uninterrupted_run(reference, tmp_path, m
     summary = json.loads((run / "summary.json").read_text())
     assert summary["complete"] is True and [t["name"] for t in summary["tasks"]] == list(TASKS)
     assert not (ckpt / "resume.pt").exists()
+    # Task 2's CPU time counts the work before the crash that the snapshot kept.
+    assert summary["tasks"][1]["cpu_time_s"] >= snapshot["cpu_elapsed"]
     for name in ("train.csv", "eval.csv"):
         assert (run / name).read_bytes() == (reference / name).read_bytes(), name
     for mine, ref in zip(task_checkpoints(run), task_checkpoints(reference)):

@@ -27,6 +27,7 @@ from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capa
 from drago.envs import EnvSpec, make_env, task_optimum
 from drago.train.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state, task_checkpoint_path
 from drago.train.logger import RunLogger
+from drago.train.resources import PeakMemory
 
 @dataclass
 class Episode:
@@ -171,12 +172,14 @@ class Trainer:
         cfg = self.cfg
         task, previous = self.build_task(index)
         name, env, buffer, learner, rng, budget = task.name, task.env, task.buffer, task.learner, task.rng, task.budget
-        elapsed = 0.0
+        elapsed = cpu_elapsed = 0.0
         last_eval_env = last_ckpt_env = 0
         last_eval: dict[str, float] = {}
+        memory = PeakMemory(self.device)
+        memory.start()
         resumed = self._try_resume(task, env)
         if resumed is not None:
-            elapsed, last_eval_env, last_ckpt_env, last_eval = resumed
+            elapsed, cpu_elapsed, last_eval_env, last_ckpt_env, last_eval = resumed
             bar.update(task.step)
             self.logger.print(f"[{name}] resumed at step {task.step} from {self.resume_checkpoint.name}")
         else:
@@ -184,6 +187,7 @@ class Trainer:
             self.logger.restore(previous["log_positions"] if index > 0 else {k: 0 for k in self.logger.positions()})
             last_eval = self.evaluate(task)
         started = time.perf_counter() - elapsed
+        cpu_started = time.process_time() - cpu_elapsed
 
         seed_steps = cfg.agent.seed_steps
         L = cfg.env.episode_length
@@ -231,19 +235,22 @@ class Trainer:
             bar.set_postfix(task=name, ret=f"{episode.ret:.1f}", eval=f"{last_eval.get('episode_reward', 0):.1f}")
             if not budget.finished(task) and env_step // cfg.train.checkpoint_freq > last_ckpt_env // cfg.train.checkpoint_freq:
                 last_ckpt_env = env_step
-                self._save_resume(task, env, time.perf_counter() - started, last_eval_env, last_ckpt_env, last_eval)
+                self._save_resume(task, env, time.perf_counter() - started, time.process_time() - cpu_started,
+                                  last_eval_env, last_ckpt_env, last_eval)
 
         self.method.end_task(task)
         # Before the task checkpoint: a crash in between redoes the end of the task, and this set with it.
         self.record_heldout(index, learner, task.step)
         wall = time.perf_counter() - started
+        # Contention-free cost: CPU seconds of all threads, and this process's peak memory during the task.
+        cost = {"cpu_time_s": time.process_time() - cpu_started, **memory.read()}
         save_checkpoint(self.task_checkpoint(index), {
             "task_index": index, "task": name, "config": cfg.to_dict(),
             "world_model": task.world_model.state_dict(),
             "method": self.method.carry_state(),
             # The learner's heads are kept for pre-rollouts and inspection; chaining never reads them.
             "learner": learner.heads.state_dict(), "learner_std_floor": float(learner.std_floor),
-            "final_eval": last_eval, "wall_time_s": wall, "steps": task.step, "learner_steps": task.learner_steps,
+            "final_eval": last_eval, "wall_time_s": wall, **cost, "steps": task.step, "learner_steps": task.learner_steps,
             "episodes": task.episodes, "log_positions": self.logger.positions(),
         }, kind="task", domain=cfg.env.domain)
         self.resume_checkpoint.unlink(missing_ok=True)
@@ -316,19 +323,19 @@ class Trainer:
         return result
 
     # ---- resumable snapshots -------------------------------------------------------------------
-    def _save_resume(self, task: TaskState, env, elapsed: float, last_eval_env: int, last_ckpt_env: int,
-                     last_eval: dict[str, float]) -> None:
+    def _save_resume(self, task: TaskState, env, elapsed: float, cpu_elapsed: float, last_eval_env: int,
+                     last_ckpt_env: int, last_eval: dict[str, float]) -> None:
         save_checkpoint(self.resume_checkpoint, {
             "task_index": task.index, "step": task.step, "learner_steps": task.learner_steps,
             "episodes": task.episodes, "world_model": task.world_model.state_dict(),
             "world_optimizer": task.world_optimizer.state_dict(), "learner": task.learner.state_dict(),
             "buffer": task.buffer.state_dict(), "method_task": self.method.task_state_dict(task),
             "rng": rng_state(task.rng), "env_rng": rng_state(env.np_random), "torch_rng": torch.get_rng_state(),
-            "elapsed": elapsed, "last_eval_env": last_eval_env, "last_ckpt_env": last_ckpt_env,
+            "elapsed": elapsed, "cpu_elapsed": cpu_elapsed, "last_eval_env": last_eval_env, "last_ckpt_env": last_ckpt_env,
             "last_eval": last_eval, "log_positions": self.logger.positions(),
         }, kind="resume", domain=self.cfg.env.domain)
 
-    def _try_resume(self, task: TaskState, env) -> tuple[float, int, int, dict[str, float]] | None:
+    def _try_resume(self, task: TaskState, env) -> tuple[float, float, int, int, dict[str, float]] | None:
         if not self.resume_checkpoint.exists():
             return None
         state = load_checkpoint(self.resume_checkpoint, kind="resume", domain=self.cfg.env.domain,
@@ -345,7 +352,8 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"])
         task.step, task.learner_steps, task.episodes = state["step"], state["learner_steps"], state["episodes"]
         self.logger.restore(state["log_positions"])
-        return state["elapsed"], state["last_eval_env"], state["last_ckpt_env"], state["last_eval"]
+        return (state["elapsed"], state.get("cpu_elapsed", 0.0), state["last_eval_env"], state["last_ckpt_env"],
+                state["last_eval"])
 
     # ---- summary -------------------------------------------------------------------------------
     def write_summary(self) -> dict[str, Any]:
@@ -363,7 +371,11 @@ class Trainer:
                           "fraction_of_optimal": final.get("fraction_of_optimal"),
                           "steps": data["steps"], "learner_steps": data["learner_steps"],
                           "env_steps": self.env_steps(data["steps"]), "episodes": data["episodes"],
-                          "wall_time_s": round(data["wall_time_s"], 2), "checkpoint": str(path.relative_to(self.run_dir))})
+                          "wall_time_s": round(data["wall_time_s"], 2),
+                          # Absent from checkpoints written before these were recorded.
+                          "cpu_time_s": round(data["cpu_time_s"], 2) if "cpu_time_s" in data else None,
+                          "peak_rss_mib": round(data["peak_rss_mib"], 1) if "peak_rss_mib" in data else None,
+                          "checkpoint": str(path.relative_to(self.run_dir))})
         summary = {"preset": cfg.preset, "method": cfg.method.name, "seed": cfg.train.seed, "domain": cfg.env.domain,
                    "tasks_planned": list(cfg.env.tasks), "complete": len(tasks) == len(cfg.env.tasks),
                    "tasks": tasks, "wall_time_s": round(sum(t["wall_time_s"] for t in tasks), 2)}

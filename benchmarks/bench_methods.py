@@ -3,14 +3,15 @@
 Each method runs in its own process (so peak memory is its own) on a short two-task version of a
 preset: task 1 to build what the method carries, then task 2, where the extra machinery of most
 methods runs (DRAGO's reviewer, VAE and rehearsal; EWC's penalty; replay's old transitions). From
-task 2's timing log it takes the median seconds per training iteration after the seed phase and
-scales it to the preset's full task budget. Memory is the process's peak resident set size and the
-size of the checkpoint handed to the next task.
+task 2's timing log it takes the median CPU seconds per training iteration after the seed phase (one
+thread, so this is also the wall time of a process with a core to itself) and scales it to the
+preset's full task budget. CPU seconds rather than wall time keep the ratios steady when other jobs
+share the machine. Memory is task 2's peak resident set size and the size of the checkpoint handed
+to the next task.
 
     .venv/bin/python benchmarks/bench_methods.py [--preset minigrid-cpu] [--threads 1] [--json out.json]
 
-Not part of the test suite. Run it on an otherwise idle machine: the ratios are only as steady as the
-load around them.
+Not part of the test suite. Wall seconds are printed too; they mean something only on an idle machine.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import resource
 import statistics
 import subprocess
 import sys
@@ -53,13 +53,13 @@ def measure_one(preset: str, method: str, threads: int, steps: int, seed_steps: 
         raise SystemExit(f"no post-seed iteration in task 2 for {method}; raise --steps above --seed-steps")
     task2 = summary["tasks"][1]
     env_steps_per_iteration = task2["env_steps"] / task2["episodes"]
-    iteration_s = statistics.median(float(r["collect_s"]) + float(r["update_s"]) for r in rows)
-    full_budget = Budget.from_config(full).max_steps * full.env.action_repeat
-    return {"method": method, "iterations_measured": len(rows), "iteration_s": iteration_s,
-            "env_steps_per_iteration": env_steps_per_iteration,
-            "task_s_full_budget": iteration_s * full_budget / env_steps_per_iteration,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "carried_checkpoint_kb": carried / 1024}
+    iteration_cpu_s = statistics.median(float(r["cpu_s"]) for r in rows)
+    iteration_wall_s = statistics.median(float(r["collect_s"]) + float(r["update_s"]) for r in rows)
+    iterations_full_budget = Budget.from_config(full).max_steps * full.env.action_repeat / env_steps_per_iteration
+    return {"method": method, "iterations_measured": len(rows), "iteration_cpu_s": iteration_cpu_s,
+            "iteration_wall_s": iteration_wall_s, "env_steps_per_iteration": env_steps_per_iteration,
+            "task_cpu_s_full_budget": iteration_cpu_s * iterations_full_budget,
+            "peak_rss_mib": task2["peak_rss_mib"], "carried_checkpoint_kb": carried / 1024}
 
 
 def main() -> None:
@@ -89,13 +89,14 @@ def main() -> None:
 
     base = next((r for r in results if r["method"] == "continual"), results[0])
     print(f"preset {args.preset}, {args.threads} thread(s); task-2 iterations after the seed phase, "
-          f"scaled to the preset's full task budget")
-    print(f"{'method':<20}{'s/iteration':>12}{'env steps/it':>13}{'s/task':>9}{'x continual':>12}"
-          f"{'peak RSS MB':>13}{'x continual':>12}{'carried kB':>12}")
+          f"CPU seconds scaled to the preset's full task budget")
+    print(f"{'method':<20}{'CPU s/it':>9}{'wall s/it':>10}{'env steps/it':>13}{'CPU s/task':>11}{'x continual':>12}"
+          f"{'peak RSS MiB':>13}{'x continual':>12}{'carried kB':>12}")
     for r in results:
-        print(f"{r['method']:<20}{r['iteration_s']:>12.2f}{r['env_steps_per_iteration']:>13.0f}"
-              f"{r['task_s_full_budget']:>9.0f}{r['task_s_full_budget'] / base['task_s_full_budget']:>12.2f}"
-              f"{r['peak_rss_mb']:>13.0f}{r['peak_rss_mb'] / base['peak_rss_mb']:>12.2f}"
+        print(f"{r['method']:<20}{r['iteration_cpu_s']:>9.2f}{r['iteration_wall_s']:>10.2f}"
+              f"{r['env_steps_per_iteration']:>13.0f}{r['task_cpu_s_full_budget']:>11.0f}"
+              f"{r['task_cpu_s_full_budget'] / base['task_cpu_s_full_budget']:>12.2f}"
+              f"{r['peak_rss_mib']:>13.0f}{r['peak_rss_mib'] / base['peak_rss_mib']:>12.2f}"
               f"{r['carried_checkpoint_kb']:>12.0f}")
     if args.json:
         Path(args.json).write_text(json.dumps({"preset": args.preset, "threads": args.threads,

@@ -192,7 +192,7 @@ class Trainer:
         seed_steps = cfg.agent.seed_steps
         L = cfg.env.episode_length
         while not budget.finished(task):
-            t0 = time.perf_counter()
+            t0, cpu0 = time.perf_counter(), time.process_time()
             step = task.step
             explore_randomly = step < seed_steps or len(buffer) < cfg.agent.batch_size
 
@@ -218,7 +218,7 @@ class Trainer:
                     metrics = self.method.gradient_step(task, step + i)
             # Only the last gradient step is logged, as in the official code: one host sync per iteration.
             row.update({k: float(v) for k, v in metrics.items()})
-            t2 = time.perf_counter()
+            t2, cpu2 = time.perf_counter(), time.process_time()
 
             env_step = self.env_steps(task.step)
             global_step = self.global_env_step(task)
@@ -229,7 +229,7 @@ class Trainer:
             t3 = time.perf_counter()
             self.logger.log("timing", {"task": name, "episode": task.episodes, "env_step": env_step,
                                        "collect_s": round(t1 - t0, 4), "update_s": round(t2 - t1, 4),
-                                       "eval_s": round(t3 - t2, 4),
+                                       "eval_s": round(t3 - t2, 4), "cpu_s": round(cpu2 - cpu0, 4),
                                        "elapsed_s": round(time.perf_counter() - started, 2)}, global_step)
             bar.update(task.step - step)
             bar.set_postfix(task=name, ret=f"{episode.ret:.1f}", eval=f"{last_eval.get('episode_reward', 0):.1f}")

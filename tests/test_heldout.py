@@ -217,3 +217,17 @@ def test_report_shows_the_retention_matrix_of_dmc_runs(runs, tmp_path):
     assert "## World-model retention (held-out transitions)" in text
     assert "| drago | 1: cheetah-run | 1 |" in text and "| drago | 2: cheetah-jump | 1 |" in text
     assert "no held-out set for cheetah-run, cheetah-jump" in text and "train.heldout_episodes=0" in text
+
+
+def test_dmc_report_has_continual_metrics_from_retention_and_no_grid_sections(runs, tmp_path):
+    _, md = build_report([runs["with"]], tmp_path / "report")
+    text = md.read_text()
+    # R[i][j]: stage i's world model on task j's held-out set, T = 2 stages.
+    R = {(r["stage"], r["task_stage"]): r["score"] for r in retention_matrix(runs["with"])}
+    acc = (R[(2, 1)] + R[(2, 2)]) / 2
+    bwt = R[(2, 1)] - R[(1, 1)]
+    assert "## Continual-learning metrics (from held-out retention)" in text
+    assert f"| drago | 2 | 1 | {acc:.2f} | {bwt:.2f} | {-bwt:.2f} |" in text
+    # Coverage, its metrics and the heatmap are grid-only: absent here, and not reported as missing.
+    assert "## World-model coverage" not in text and "(from coverage)" not in text
+    assert "grid only" not in text and "heatmap" not in text.lower()

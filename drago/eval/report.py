@@ -321,8 +321,8 @@ def _returns_table(groups: dict[str, list[Run]], tasks: list[str]) -> Table:
             optima = [o for o in (_number(e.get("optimal_return")) for e in entries) if math.isfinite(o)]
             rows.append((label, task, str(len(entries)), fraction, returns, f"{optima[0]:.1f}" if optima else "–"))
     return Table("returns", "Final return per task",
-                 "Evaluation return at the end of each task, as a fraction of the DP-optimal return of "
-                 "that task: mean ± sample std [95% bootstrap CI of the mean] over seeds; a single seed "
+                 "Evaluation return at the end of each task, and as a fraction of the DP-optimal return of "
+                 "that task where one is known (the grid; not DeepMind Control): mean ± sample std [95% bootstrap CI of the mean] over seeds; a single seed "
                  "shows its value alone. Seeds counts only runs that finished the task.",
                  ("method", "task", "seeds", "fraction of optimum", "return", "DP optimum"), rows)
 
@@ -330,9 +330,7 @@ def _returns_table(groups: dict[str, list[Run]], tasks: list[str]) -> Table:
 def _coverage(run: Run, findings: _Findings) -> list[dict[str, Any]]:
     """The run's coverage rows: its coverage.csv when it matches its checkpoints, else computed."""
     if run.cfg.env.domain != GRID_DOMAIN:
-        findings.missing.append(f"{run.path}: a '{run.cfg.env.domain}' run; coverage and heatmaps are "
-                                f"defined for the '{GRID_DOMAIN}' grid only")
-        return []
+        return []  # its retention matrix comes from held-out sets instead
     try:
         _, checkpoints = run_checkpoints(run.path)
     except CoverageError:
@@ -377,38 +375,54 @@ def _coverage_table(groups: dict[str, list[Run]], coverage: dict[Path, list[dict
                  ("method", "after stage", "seeds", *COVERAGE_COLUMNS), rows)
 
 
-def _metrics_table(groups: dict[str, list[Run]], coverage: dict[Path, list[dict[str, Any]]],
-                   findings: _Findings) -> Table:
+def _coverage_matrix(run: Run, rows: list[dict[str, Any]], findings: _Findings) -> list[list[float]]:
+    """R[i][j] = coverage accuracy in the room of task j after stage i + 1, over the stages the run finished."""
+    acc = _accuracy(rows)
+    if not acc:
+        return []
+    rooms = [_task_room(task) for task in run.planned]
+    if None in rooms:
+        findings.missing.append(f"{run.path}: continual metrics need one room per task; "
+                                f"{', '.join(t for t, r in zip(run.planned, rooms) if r is None)} has none")
+        return []
+    stages = 0
+    while (stages + 1, ALL) in acc:
+        stages += 1
+    if stages == 0:
+        findings.missing.append(f"{run.path}: no world model after task 1, so no continual metrics")
+    return [[acc[(i + 1, room)] for room in rooms] for i in range(stages)]
+
+
+def _retention_score_matrix(rows: list[dict[str, Any]]) -> list[list[float]]:
+    """R[i][j] = held-out prediction score of task j's set after stage i + 1, over the largest T for which
+    every stage i < T has a score on every set j < T (a missing set shortens T)."""
+    score = {(int(r["stage"]), int(r["task_stage"])): float(r["score"]) for r in rows}
+    stages = 0
+    while all((i, j) in score for i in range(1, stages + 2) for j in range(1, stages + 2)):
+        stages += 1
+    return [[score[(i + 1, j + 1)] for j in range(stages)] for i in range(stages)]
+
+
+def _metrics_table(groups: dict[str, list[Run]], matrices: dict[Path, list[list[float]]], table_id: str,
+                   title: str, what: str) -> Table:
+    """GEM ACC/BWT and Continual World forgetting of each run's matrix R, grouped by its stage count."""
     rows = []
     for label, runs in groups.items():
         by_stages: dict[int, list[dict[str, float]]] = {}
         for run in runs:
-            acc = _accuracy(coverage.get(run.path, []))
-            if not acc:
-                continue
-            rooms = [_task_room(task) for task in run.planned]
-            if None in rooms:
-                findings.missing.append(f"{run.path}: continual metrics need one room per task; "
-                                        f"{', '.join(t for t, r in zip(run.planned, rooms) if r is None)} has none")
-                continue
-            stages = 0
-            while (stages + 1, ALL) in acc:
-                stages += 1
-            if stages == 0:
-                findings.missing.append(f"{run.path}: no world model after task 1, so no continual metrics")
-                continue
-            R = [[acc[(i + 1, room)] for room in rooms] for i in range(stages)]
-            by_stages.setdefault(stages, []).append(continual_metrics(R))
+            R = matrices.get(run.path) or []
+            if R:
+                by_stages.setdefault(len(R), []).append(continual_metrics(R))
         for stages in sorted(by_stages, reverse=True):
             metrics = by_stages[stages]
             cells = [_fmt([m[key] for m in metrics])[0] for key in ("acc", "bwt", "forgetting")]
             rows.append((label, str(stages), str(len(metrics)), *cells))
-    return Table("metrics", "Continual-learning metrics (from coverage)",
-                 "R[i, j] = coverage accuracy in the room of task j after stage i, over the T stages a run "
-                 "finished. ACC (GEM) = mean over j of R[T-1, j], equal to Continual World's average "
-                 "performance; BWT (GEM) = mean over j < T-1 of R[T-1, j] − R[j, j], negative when the model "
-                 "forgets; forgetting (Continual World) = −BWT. Runs are grouped by T, since values over "
-                 "different T do not compare; with T = 1 there is nothing to forget (–).",
+    return Table(table_id, title,
+                 f"R[i, j] = {what} after stage i, over the T stages a run finished. ACC (GEM) = mean over j of "
+                 "R[T-1, j], equal to Continual World's average performance; BWT (GEM) = mean over j < T-1 of "
+                 "R[T-1, j] − R[j, j], negative when the model forgets; forgetting (Continual World) = −BWT. "
+                 "Runs are grouped by T, since values over different T do not compare; with T = 1 there is "
+                 "nothing to forget (–).",
                  ("method", "stages T", "seeds", "ACC", "BWT", "forgetting"), rows)
 
 
@@ -431,9 +445,8 @@ def _retention_rows(run: Run, findings: _Findings) -> list[dict[str, Any]]:
     return retention_matrix(run.path) if len(missing) < len(checkpoints) else []
 
 
-def _retention_tables(groups: dict[str, list[Run]], findings: _Findings) -> list[Table]:
+def _retention_tables(groups: dict[str, list[Run]], rows: dict[Path, list[dict[str, Any]]]) -> list[Table]:
     """The retention matrix of DeepMind Control runs (method x stage x held-out set), score and error."""
-    rows = {run.path: _retention_rows(run, findings) for runs in groups.values() for run in runs}
     if not any(rows.values()):
         return []
     tasks: list[str] = []
@@ -879,8 +892,18 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
                                "the task's env steps (learner plus reviewer; when a reviewer spent any, the top "
                                "row is against the learner's env steps alone): the mean over seeds with its 95% "
                                "bootstrap CI as a band (no band for a single seed).", curves, CURVES_PNG))
-    sections += [_coverage_table(groups, coverage), _metrics_table(groups, coverage, findings)]
-    sections += _retention_tables(groups, findings)  # DeepMind Control runs only
+    if any(run.cfg.env.domain == GRID_DOMAIN for run in runs):
+        matrices = {run.path: _coverage_matrix(run, coverage[run.path], findings) for run in runs}
+        sections += [_coverage_table(groups, coverage),
+                     _metrics_table(groups, matrices, "metrics", "Continual-learning metrics (from coverage)",
+                                    "coverage accuracy in the room of task j")]
+    retention = {run.path: _retention_rows(run, findings) for run in runs}  # DeepMind Control runs only
+    if any(retention.values()):
+        sections += _retention_tables(groups, retention)
+        matrices = {path: _retention_score_matrix(rows) for path, rows in retention.items()}
+        sections.append(_metrics_table(
+            groups, matrices, "retention-metrics", "Continual-learning metrics (from held-out retention)",
+            "the world model's prediction score −log(MSE + ε) on the held-out transitions of task j"))
     heatmap = _heatmap(groups)
     if heatmap is not None:
         sections.append(Figure("heatmap", "World-model prediction score", "Per-cell prediction score of the "

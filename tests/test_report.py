@@ -454,3 +454,61 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
                    capture_output=True, timeout=120, check=True)
     image = png(shot.read_bytes())
     assert image.size == (1280, 2000) and not_blank(image)
+
+
+def test_relearning_transfers_give_continual_metrics_of_returns(runs, tmp_path):
+    run = tmp_path / "continual-seed1"
+    shutil.copytree(runs["c1"], run, ignore=shutil.ignore_patterns("transfer"))
+    score = {}
+    for task in ("room1", "room2"):
+        for after in (1, 2):
+            assert cli.main(["transfer", str(run), "--no-progress", "--task", task, "--after", str(after),
+                             "--episodes", "1"]) == 0
+            block = json.loads((run / "transfer" / f"{task}-after{after}" / "summary.json").read_text())
+            score[(after, task)] = block["transfer"]["few_shot"]["equal_episodes"]["fraction_of_optimal"]
+    html_path, _ = build_report([run], tmp_path / "report")
+    table = rows_by(parse(html_path.read_text()).tables["table-relearning-metrics"], "method", "stages T")
+    # R[i][j]: room j relearned from the world model after stage i (GEM ACC and BWT, spec of issue 4).
+    acc = (score[(2, "room1")] + score[(2, "room2")]) / 2
+    bwt = score[(2, "room1")] - score[(1, "room1")]
+    assert (table[("continual", "2")]["ACC"], table[("continual", "2")]["BWT"]) == (f"{acc:.2f}", f"{bwt:.2f}")
+
+    # Without room 2 relearned after stage 1 the matrix stops at T = 1, and the report says what is lacking.
+    shutil.rmtree(run / "transfer" / "room2-after1")
+    html_path, md_path = build_report([run], tmp_path / "report")
+    table = rows_by(parse(html_path.read_text()).tables["table-relearning-metrics"], "method", "stages T")
+    assert set(table) == {("continual", "1")} and table[("continual", "1")]["BWT"] == "–"
+    assert "relearning matrix stops at T = 1; it lacks room2 after 1" in md_path.read_text()
+
+
+def test_forward_transfer_against_scratch_by_hand(runs, tmp_path):
+    """A `scratch` reference at 0.5 of the optimum throughout: FT = (AUC - 0.5) / (1 - 0.5) per room."""
+    reference = tmp_path / "scratch-seed1"
+    shutil.copytree(runs["c1"], reference, ignore=shutil.ignore_patterns("transfer"))
+    config = yaml.safe_load((reference / "config.yaml").read_text())
+    config["method"]["name"] = "scratch"
+    (reference / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    with (reference / "eval.csv").open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        columns, rows = reader.fieldnames, list(reader)
+    with (reference / "eval.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(dict(r, fraction_of_optimal="0.5") for r in rows)
+
+    expected = {}
+    for room in ("room1", "room2"):
+        y = [float(r["fraction_of_optimal"]) for r in rows if r["task"] == room]
+        auc = (sum(y) - (y[0] + y[-1]) / 2) / (len(y) - 1)  # trapezoid on [0, 1]
+        expected[room] = (auc - 0.5) / 0.5
+    html_path, _ = build_report([runs["c1"], reference], tmp_path / "report")
+    table = rows_by(parse(html_path.read_text()).tables["table-forward-transfer"], "method")
+    assert set(table) == {("continual",)}
+    row = table[("continual",)]
+    assert (row["room1"], row["room2"]) == (f"{expected['room1']:.2f}", f"{expected['room2']:.2f}")
+    assert row["mean"] == f"{(expected['room1'] + expected['room2']) / 2:.2f}"
+
+    # Without `scratch` runs there is no reference: no table, and the report says why.
+    _, md_path = build_report([runs["c1"]], tmp_path / "alone")
+    assert "Forward transfer (Continual World)" not in md_path.read_text()
+    assert "needs `scratch` runs as the single-task reference" in md_path.read_text()

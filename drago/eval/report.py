@@ -38,7 +38,7 @@ from drago.eval.coverage import (
     room_of,
     run_checkpoints,
 )
-from drago.eval.metrics import continual_metrics
+from drago.eval.metrics import continual_metrics, cw_forward_transfer
 from drago.eval.stats import summarize
 from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
 from drago.train.transfer import TRANSFER_FOLDER, transfer_summary
@@ -325,6 +325,69 @@ def _returns_table(groups: dict[str, list[Run]], tasks: list[str]) -> Table:
                  "that task where one is known (the grid; not DeepMind Control): mean ± sample std [95% bootstrap CI of the mean] over seeds; a single seed "
                  "shows its value alone. Seeds counts only runs that finished the task.",
                  ("method", "task", "seeds", "fraction of optimum", "return", "DP optimum"), rows)
+
+
+def _task_curve(run: Run, task: str) -> tuple[dict[int, float], float]:
+    """A finished task's evaluation curve (task env step -> value) and the best value its scale allows:
+    1 for the fraction of the DP optimum (grid), the most a DeepMind Control episode can earn for raw
+    return (reward at most 1 per control step)."""
+    if task not in run.finished:
+        return {}, math.nan
+    rows = [r for r in run.eval_rows if r["task"] == task]
+    key, _ = _quantity(rows)
+    ceiling = 1.0 if key == "fraction_of_optimal" else float(run.cfg.env.episode_length * run.cfg.env.action_repeat)
+    curve = {int(_number(r["env_step"])): _number(r[key]) for r in rows}
+    return {x: y for x, y in curve.items() if math.isfinite(y)}, ceiling
+
+
+def _forward_transfer_table(groups: dict[str, list[Run]], tasks: list[str], findings: _Findings) -> list[Table]:
+    """Continual World forward transfer of every method against the `scratch` runs, from training curves."""
+    reference = next((label for label, runs in groups.items() if runs and runs[0].method == "scratch"), None)
+    others = [label for label in groups if label != reference]
+    if not others:
+        return []
+    if reference is None:
+        findings.missing.append("forward transfer: it needs `scratch` runs as the single-task reference "
+                                "(Continual World); none were given")
+        return []
+    ref: dict[str, dict[int, float]] = {}
+    for task in tasks:
+        curves = [c for c in (_task_curve(run, task)[0] for run in groups[reference]) if c]
+        steps = set.intersection(*(set(c) for c in curves)) if curves else set()
+        ref[task] = {x: sum(c[x] for c in curves) / len(curves) for x in steps}
+    rows = []
+    for label in others:
+        per_run: list[dict[str, float]] = []
+        for run in groups[label]:
+            transfer: dict[str, float] = {}
+            for task in tasks:
+                curve, ceiling = _task_curve(run, task)
+                steps = sorted(set(curve) & set(ref[task]))
+                if len(steps) < 2:
+                    continue
+                try:
+                    transfer[task] = cw_forward_transfer([curve[x] for x in steps], [ref[task][x] for x in steps],
+                                                         ceiling)
+                except ValueError as err:
+                    findings.notes.append(f"{run.path}: no forward transfer on {task} ({err})")
+            if transfer:
+                per_run.append(transfer)
+        if per_run:
+            means = [sum(t.values()) / len(t) for t in per_run]
+            cells = [_fmt([t[task] for t in per_run if task in t])[0] if any(task in t for t in per_run) else "–"
+                     for task in tasks]
+            rows.append((label, str(len(per_run)), _fmt(means)[0], *cells))
+    if not rows:
+        return []
+    return [Table("forward-transfer", "Forward transfer (Continual World)",
+                  "FT = (AUC − AUC_ref) / (max − AUC_ref) per task (Wołczyk et al. 2021, §3), where AUC is the "
+                  "time-average of the method's evaluation curve during its training on the task (trapezoid rule "
+                  "over the evaluations both curves share), AUC_ref the same for `scratch` (a fresh world model per "
+                  "task: the single-task reference, mean over its seeds), and max the scale's best value (1 for "
+                  "the fraction of the DP optimum; the episode's control steps for DeepMind Control's raw return). "
+                  "Positive: earlier tasks made this one faster to learn. 'mean' averages a run's tasks; mean ± "
+                  "std [95% CI] over seeds.",
+                  ("method", "seeds", "mean", *tasks), rows)]
 
 
 def _coverage(run: Run, findings: _Findings) -> list[dict[str, Any]]:
@@ -698,6 +761,50 @@ def _transfer_tables(tgroups: dict[str, list[Run]], cases: list[Case],
     return tables
 
 
+def _source_run(transfer: Run) -> Path:
+    """The run directory whose stage checkpoint a transfer started from (``RUN_DIR/checkpoints/*.pt``)."""
+    return (transfer.path / str(transfer.cfg.transfer.checkpoint)).resolve().parent.parent
+
+
+def _relearning_matrix(run: Run, relearned: dict[tuple[str, int], float],
+                       findings: _Findings) -> list[list[float]]:
+    """R[i][j] = the few-shot score of relearning training task j from the world model after stage i + 1,
+    over the largest T for which every (stage < T, task < T) cell has a score; a gap is reported."""
+    stages = 0
+    while stages < len(run.planned) and all((run.planned[j], i) in relearned
+                                            for i in range(1, stages + 2) for j in range(stages + 1)):
+        stages += 1
+    lacking = [f"{run.planned[j]} after {i}" for i in range(1, len(run.planned) + 1)
+               for j in range(len(run.planned)) if (run.planned[j], i) not in relearned]
+    if relearned and stages < len(run.finished) and lacking:
+        findings.missing.append(f"{run.path}: its relearning matrix stops at T = {stages}; it lacks "
+                                f"{', '.join(lacking[:4])}{' ...' if len(lacking) > 4 else ''} "
+                                f"(`drago transfer {run.path} --task TASK --after K`)")
+    return [[relearned[(run.planned[j], i + 1)] for j in range(stages)] for i in range(stages)]
+
+
+def _relearning_metrics(groups: dict[str, list[Run]], transfers: list[Run],
+                        blocks: dict[Path, dict[str, Any] | None], findings: _Findings) -> list[Table]:
+    """Continual-learning metrics of the return matrix: each training task relearned after each stage."""
+    relearned: dict[Path, dict[tuple[str, int], float]] = {}
+    for transfer in transfers:
+        task, after = transfer.case
+        point = (blocks[transfer.path] or {}).get("few_shot", {}).get("equal_episodes")
+        if not point:
+            continue  # not reached yet; test tasks never match a training task in _relearning_matrix
+        fraction = _number(point.get("fraction_of_optimal"))
+        relearned.setdefault(_source_run(transfer), {})[(task, after)] = (
+            fraction if math.isfinite(fraction) else _number(point.get("return")))
+    matrices = {run.path: _relearning_matrix(run, relearned.get(run.path.resolve(), {}), findings)
+                for runs in groups.values() for run in runs}
+    if not any(matrices.values()):
+        return []
+    return [_metrics_table(groups, matrices, "relearning-metrics", "Continual-learning metrics (from relearning)",
+                           "the few-shot score (fraction of the DP optimum on the grid, raw return on DeepMind "
+                           "Control) of relearning training task j with fresh heads (`drago transfer RUN --task "
+                           "TASK_j --after i+1`) from the world model saved")]
+
+
 def _transfer_png(tgroups: dict[str, list[Run]], cases: list[Case], colours: dict[str, str]) -> bytes | None:
     """Per case (columns): return vs learner env steps (top) and vs total env steps (bottom)."""
     def runs_of(case: Case) -> dict[str, list[list[dict[str, str]]]]:
@@ -892,6 +999,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
                                "the task's env steps (learner plus reviewer; when a reviewer spent any, the top "
                                "row is against the learner's env steps alone): the mean over seeds with its 95% "
                                "bootstrap CI as a band (no band for a single seed).", curves, CURVES_PNG))
+    sections += _forward_transfer_table(groups, tasks, findings)
     if any(run.cfg.env.domain == GRID_DOMAIN for run in runs):
         matrices = {run.path: _coverage_matrix(run, coverage[run.path], findings) for run in runs}
         sections += [_coverage_table(groups, coverage),
@@ -916,6 +1024,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         cases = sorted({run.case for run in transfers})
         blocks = {run.path: _transfer_block(run) for run in transfers}
         sections += _transfer_tables(tgroups, cases, blocks)
+        sections += _relearning_metrics(groups, transfers, blocks, findings)
         transfer_curves = _transfer_png(tgroups, cases, colours)
         if transfer_curves is not None:
             sections.append(Figure("transfer-curves", "Transfer learning curves", "Evaluation return on each test "

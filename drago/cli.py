@@ -254,7 +254,7 @@ def _add_study_parser(sub) -> None:
     study = sub.add_parser(
         "study", help="the grid study in one command: methods x seeds, their transfer cases, one report",
         usage="drago study [PRESET] [--methods M ...] [--seeds S ...] [--out DIR] [--jobs N] "
-              "[--transfer-episodes N] [--no-transfer] [--dry-run] [key=value ...]",
+              "[--transfer-episodes N] [--transfer-eval-every N] [--no-transfer] [--dry-run] [key=value ...]",
         description="Runs every method x seed on the preset's sequence into OUT/METHOD/seedS, the paper's "
                     "transfer cases of each run (as `drago transfer --paper-cases`), then `drago report` into "
                     "OUT/report. Finished work is skipped and interrupted work resumed, so after any crash "
@@ -271,6 +271,9 @@ def _add_study_parser(sub) -> None:
                        help="runs at a time, each with cores/N torch threads (default 1)")
     study.add_argument("--transfer-episodes", type=int, default=None, metavar="N",
                        help="learner episodes of each transfer case (default 20)")
+    study.add_argument("--transfer-eval-every", type=int, default=1, metavar="N",
+                       help="evaluate each transfer after every N learner episodes (default 1; DeepMind Control "
+                            "evaluations are costly, 5 still reads both few-shot scores)")
     study.add_argument("--no-transfer", action="store_true", help="sequence runs and report only")
     study.add_argument("--dry-run", action="store_true", help="print the plan, run nothing")
 
@@ -294,7 +297,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
     plan = plan_study(preset or DEFAULT_PRESET, methods or DEFAULT_METHODS,
                       parse_seeds(seeds) if seeds else DEFAULT_SEEDS, out=args.out, overrides=overrides,
                       jobs=args.jobs, transfers=not args.no_transfer,
-                      transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes)
+                      transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes,
+                      transfer_eval_every=args.transfer_eval_every)
     for line in describe_plan(plan, verbose=args.dry_run):
         print(line, flush=True)
     if args.dry_run:

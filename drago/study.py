@@ -149,6 +149,7 @@ class StudyPlan:
     threads: int
     cores: int
     transfer_episodes: int
+    transfer_eval_every: int
     cases: tuple[tuple[str, int], ...]
     runs: list[Job] = field(default_factory=list)
     transfers: list[Job] = field(default_factory=list)
@@ -216,7 +217,8 @@ def _has_threads(overrides: Sequence[str]) -> bool:
 def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_METHODS,
                seeds: Sequence[int] = DEFAULT_SEEDS, out: str | Path | None = None,
                overrides: Sequence[str] = (), jobs: int = 1, transfers: bool = True,
-               transfer_episodes: int = DEFAULT_EPISODES, cores: int | None = None) -> StudyPlan:
+               transfer_episodes: int = DEFAULT_EPISODES, transfer_eval_every: int = 1,
+               cores: int | None = None) -> StudyPlan:
     """Work out what a study still has to do, from its directories.
 
     Args:
@@ -229,6 +231,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         jobs: Runs at a time.
         transfers: Plan the paper's transfer cases of every run.
         transfer_episodes: Learner episodes of each transfer case.
+        transfer_eval_every: Evaluate each transfer after every this many learner episodes.
         cores: CPU cores to share (default: those this process may use).
 
     Raises:
@@ -246,6 +249,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         raise StudyError(f"--jobs must be a positive integer, got {jobs}")
     if transfer_episodes < 1:
         raise StudyError(f"--transfer-episodes must be a positive integer, got {transfer_episodes}")
+    if transfer_eval_every < 1:
+        raise StudyError(f"--transfer-eval-every must be a positive integer, got {transfer_eval_every}")
     cores = cores or available_cores()
     overrides = list(overrides)
     if not _has_threads(overrides):
@@ -257,7 +262,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     kept = tuple((task, after) for task, after in cases if after <= n_tasks)
     plan = StudyPlan(preset=preset, out=out, methods=methods, seeds=seeds, overrides=overrides,
                      tasks=tuple(base.env.tasks), jobs=jobs, threads=base.train.threads, cores=cores,
-                     transfer_episodes=transfer_episodes, cases=kept)
+                     transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept)
     if transfers and not cases:
         plan.notes.append(f"the paper has no transfer cases for domain {base.env.domain}: none planned")
     left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
@@ -282,7 +287,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                       source_cfg.train.threads)
             plan.runs.append(run)
             for task, after in kept:
-                plan.transfers.append(_transfer_job(run, task, after, transfer_episodes, logs))
+                plan.transfers.append(_transfer_job(run, task, after, transfer_episodes, transfer_eval_every, logs))
     resumed = sorted({j.threads for j in plan.runs if j.state == RESUME and j.threads != plan.threads})
     if resumed:
         plan.notes.append(f"interrupted runs keep the train.threads they started with "
@@ -290,18 +295,18 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     return plan
 
 
-def _transfer_job(run: Job, task: str, after: int, episodes: int, logs: Path) -> Job:
+def _transfer_job(run: Job, task: str, after: int, episodes: int, eval_every: int, logs: Path) -> Job:
     from drago.train.transfer import _planned
 
     case_dir = default_transfer_dir(run.directory, task, after)
 
     def wanted() -> Config:
         # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N` would write.
-        return _planned(run.directory, task, after, None, episodes=episodes)[0]
+        return _planned(run.directory, task, after, None, episodes=episodes, eval_every=eval_every)[0]
 
     state, _ = _state(case_dir, wanted, "transfer")
     argv = {START: ["transfer", str(run.directory), "--task", task, "--after", str(after), "--episodes", str(episodes),
-                    "--no-progress"],
+                    "--eval-every", str(eval_every), "--no-progress"],
             RESUME: ["resume", str(case_dir), "--no-progress"], DONE: []}[state]
     return Job(f"{run.label} {task}-after{after}", "transfer", run.method, run.seed, case_dir, state, argv,
                logs / f"{run.method}-seed{run.seed}-{task}-after{after}.log", run.threads,
@@ -362,7 +367,9 @@ def describe_plan(plan: StudyPlan, verbose: bool = False) -> list[str]:
     if plan.cases:
         cases = ", ".join(f"{task} after {after}" for task, after in plan.cases)
         lines += [f"  transfers: {_counts(plan.transfers)}; cases {cases}, "
-                  f"{plan.transfer_episodes} learner episode{'s' * (plan.transfer_episodes != 1)} each"]
+                  f"{plan.transfer_episodes} learner episode{'s' * (plan.transfer_episodes != 1)} each, "
+                  f"evaluated after every {'' if plan.transfer_eval_every == 1 else f'{plan.transfer_eval_every} '}"
+                  f"episode{'s' * (plan.transfer_eval_every != 1)}"]
     lines.append(f"  jobs:      {plan.jobs} at a time on {plan.cores} core{'s' * (plan.cores != 1)}, new runs with "
                  f"train.threads={plan.threads}; each job's output in {plan.out / LOG_FOLDER}/")
     estimate = _estimate(plan)

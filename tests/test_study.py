@@ -231,11 +231,25 @@ def test_a_folder_holding_something_else_is_a_one_line_error(reference, tmp_path
         assert text in err, text
 
 
+def test_transfers_evaluated_every_n_episodes_and_kept_to_that_setting(tmp_path):
+    out = tmp_path / "every2"
+    result = run_study(plan(out, methods=("continual",), episodes=2, transfer_eval_every=2), echo=lambda line: None,
+                       in_process=True)
+    assert result.ok, result.summary_line()
+    for case in CASES:
+        assert [r["episode"] for r in read_csv(out / "continual" / "seed1" / "transfer" / case / "eval.csv")] == ["0", "2"]
+    again = plan(out, methods=("continual",), episodes=2, transfer_eval_every=2)
+    assert {job.state for job in [*again.runs, *again.transfers]} == {DONE}
+    with pytest.raises(StudyError, match="room1to2-after2"):
+        plan(out, methods=("continual",), episodes=2, transfer_eval_every=1)
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["--jobs", "0"], "--jobs"),
     (["--seeds", "x"], "--seeds"),
     (["--methods", "nope"], "nope"),
     (["--transfer-episodes", "0"], "--transfer-episodes"),
+    (["--transfer-eval-every", "0"], "--transfer-eval-every"),
     (["agent.nope=1"], "nope"),
 ])
 def test_bad_arguments_are_one_line_errors(tmp_path, capsys, argv, expected):

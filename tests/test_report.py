@@ -386,6 +386,7 @@ def test_report_has_a_transfer_section(transfers, tmp_path):
     assert (f"{t['d3-t']} (drago, seed 3, room1to2 after 2): unfinished, 1 of 2 learner episodes evaluated; "
             f"no few-shot score at equal episodes yet") in missing
     assert "continual: no transfer room1to2 after 2 for seed(s) 2" in missing
+    assert "relearning" not in md  # test tasks only: no return matrix of training tasks to speak of
     assert "drago: 1 seed(s) (1) against 2 for continual" in missing
 
     # Figures: the sequence curves, the heatmap and the transfer curves (learner and total env steps).

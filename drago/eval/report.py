@@ -770,6 +770,7 @@ def _relearning_matrix(run: Run, relearned: dict[tuple[str, int], float],
                        findings: _Findings) -> list[list[float]]:
     """R[i][j] = the few-shot score of relearning training task j from the world model after stage i + 1,
     over the largest T for which every (stage < T, task < T) cell has a score; a gap is reported."""
+    relearned = {key: score for key, score in relearned.items() if key[0] in run.planned}  # not test tasks
     stages = 0
     while stages < len(run.planned) and all((run.planned[j], i) in relearned
                                             for i in range(1, stages + 2) for j in range(stages + 1)):

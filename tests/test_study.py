@@ -237,7 +237,8 @@ def test_transfers_evaluated_every_n_episodes_and_kept_to_that_setting(tmp_path)
                        in_process=True)
     assert result.ok, result.summary_line()
     for case in CASES:
-        assert [r["episode"] for r in read_csv(out / "continual" / "seed1" / "transfer" / case / "eval.csv")] == ["0", "2"]
+        evaluations = read_csv(out / "continual" / "seed1" / "transfer" / case / "eval.csv")
+        assert [r["episode"] for r in evaluations] == ["0", "2"]
     again = plan(out, methods=("continual",), episodes=2, transfer_eval_every=2)
     assert {job.state for job in [*again.runs, *again.transfers]} == {DONE}
     with pytest.raises(StudyError, match="room1to2-after2"):

@@ -322,8 +322,9 @@ def _returns_table(groups: dict[str, list[Run]], tasks: list[str]) -> Table:
             rows.append((label, task, str(len(entries)), fraction, returns, f"{optima[0]:.1f}" if optima else "–"))
     return Table("returns", "Final return per task",
                  "Evaluation return at the end of each task, and as a fraction of the DP-optimal return of "
-                 "that task where one is known (the grid; not DeepMind Control): mean ± sample std [95% bootstrap CI of the mean] over seeds; a single seed "
-                 "shows its value alone. Seeds counts only runs that finished the task.",
+                 "that task where one is known (the grid; not DeepMind Control): mean ± sample std [95% "
+                 "bootstrap CI of the mean] over seeds; a single seed shows its value alone. Seeds counts only "
+                 "runs that finished the task.",
                  ("method", "task", "seeds", "fraction of optimum", "return", "DP optimum"), rows)
 
 

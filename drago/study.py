@@ -251,6 +251,10 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         raise StudyError(f"--transfer-episodes must be a positive integer, got {transfer_episodes}")
     if transfer_eval_every < 1:
         raise StudyError(f"--transfer-eval-every must be a positive integer, got {transfer_eval_every}")
+    few_shot = min(DEFAULT_EPISODES, transfer_episodes)  # where `drago transfer` reads the few-shot score
+    if few_shot % transfer_eval_every:
+        raise StudyError(f"--transfer-eval-every {transfer_eval_every} does not divide the {few_shot} few-shot "
+                         f"episodes, so no evaluation would fall on them; choose a divisor of {few_shot}")
     cores = cores or available_cores()
     overrides = list(overrides)
     if not _has_threads(overrides):

@@ -251,6 +251,7 @@ def test_transfers_evaluated_every_n_episodes_and_kept_to_that_setting(tmp_path)
     (["--methods", "nope"], "nope"),
     (["--transfer-episodes", "0"], "--transfer-episodes"),
     (["--transfer-eval-every", "0"], "--transfer-eval-every"),
+    (["--transfer-eval-every", "3"], "does not divide the 20 few-shot episodes"),
     (["agent.nope=1"], "nope"),
 ])
 def test_bad_arguments_are_one_line_errors(tmp_path, capsys, argv, expected):

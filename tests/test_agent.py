@@ -457,6 +457,45 @@ def test_plan_continuous_training_action_stays_in_bounds(monkeypatch):
     assert (stacked == 1).any()  # exploration noise pushed past the bound and was clipped
 
 
+def test_batched_planning_solves_each_problem_and_one_problem_is_unbatched(monkeypatch):
+    """E observations planned as one batch: each gets its own optimum; a batch of one draws and computes
+    exactly what a single observation does (training plans one observation at a time)."""
+    wm, heads = make_world(), make_heads()
+    monkeypatch.setattr(wm, "forward", lambda z, a: z)  # the latent never moves: a_t . z_0 pays at every step
+    monkeypatch.setattr(heads, "predict_reward", lambda z, a: (a * z).sum(-1))
+    obs = torch.eye(OBS)  # observation k pays action k
+    torch.manual_seed(0)
+    actions = plan_discrete(wm, heads, obs, settings(), eval_mode=True)
+    assert torch.equal(actions, torch.eye(ACT))
+
+    wm2, heads2 = make_world(act_dim=2, squash=False, use_crelu=False), make_heads(act_dim=2, discrete=False)
+    targets = torch.tensor([[0.5, -0.5], [-0.6, 0.2], [0.1, 0.7]])
+    monkeypatch.setattr(heads2, "predict_reward", lambda z, a: -((a - z[..., :2]) ** 2).sum(-1))
+    monkeypatch.setattr(wm2, "forward", lambda z, a: z)
+    obs2 = torch.cat((targets, torch.zeros(3, 1)), dim=1)
+    s = settings(iterations=6, num_samples=256, num_elites=32, num_policy_trajectories=0)
+    action, mean = plan_continuous(wm2, heads2, obs2, s, eval_mode=True, warm_mean=None)
+    assert action.shape == (3, 2) and mean.shape == (3, 3, 2)
+    torch.testing.assert_close(action, targets, atol=0.15, rtol=0)
+    action, mean = plan_continuous(wm2, heads2, obs2, s, eval_mode=False, warm_mean=mean)  # warm-started
+    assert action.shape == (3, 2) and torch.all(action.abs() <= 1)
+
+    wm3, heads3 = make_world(), make_heads()
+    for selection in ("sample", "argmax"):
+        s = settings(use_q=True, elite_selection=selection)
+        single, batch = [], []
+        for out, x in ((single, obs[1]), (batch, obs[1:2])):
+            torch.manual_seed(3)
+            out.append(plan_discrete(wm3, heads3, x, s, eval_mode=False))
+            out.append(plan_continuous(wm2, heads2, obs2[1] if x.dim() == 1 else obs2[1:2], s, eval_mode=False,
+                                       warm_mean=None))
+            out.append(torch.rand(4))  # the generator moved by the same draws
+        assert torch.equal(single[0], batch[0][0]) and torch.equal(single[1][0], batch[1][0][0])
+        assert torch.equal(single[1][1], batch[1][1][:, 0]) and torch.equal(single[2], batch[2])
+    with pytest.raises(ValueError, match=r"shape \(n,\) or \(E, n\)"):
+        plan_discrete(wm, heads, torch.zeros(1, 2, OBS), settings(), eval_mode=True)
+
+
 def test_trajectory_returns_closed_form_and_reward_bonus(monkeypatch):
     wm, heads = make_world(act_dim=2, squash=False, use_crelu=False), make_heads(act_dim=2, discrete=False)
     monkeypatch.setattr(heads, "predict_reward", lambda z, a: a.sum(-1))

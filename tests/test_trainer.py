@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -158,6 +159,39 @@ def test_same_seed_gives_identical_logs_and_another_seed_does_not(reference, tmp
         assert (same / name).read_bytes() == (reference / name).read_bytes(), name
     assert train(other, "--seed", "2") == 0
     assert (other / "train.csv").read_bytes() != (reference / "train.csv").read_bytes()
+
+
+def test_evaluation_never_changes_what_a_run_learns(reference, tmp_path):
+    """Evaluations run on a torch stream and envs of their own: evaluating more often and with more
+    episodes leaves the training log byte for byte as it was."""
+    out = tmp_path / "more-evals"
+    assert train(out, "train.eval_freq=100", "train.eval_episodes=3") == 0
+    assert (out / "train.csv").read_bytes() == (reference / "train.csv").read_bytes()
+    assert len(read_csv(out / "eval.csv")) == 4 * 5 and len(read_csv(reference / "eval.csv")) == 4 * 3
+
+
+def test_episodes_side_by_side_are_the_episodes_one_at_a_time():
+    from drago.envs import make_env
+    from drago.train.trainer import run_episode, run_episodes
+
+    def fixed(seed):
+        return np.random.default_rng(seed).integers(3, size=30)
+
+    def one_hot(index):
+        return np.eye(3, dtype=np.float32)[index]
+
+    envs = [make_env("minigrid", "room1", False), make_env("minigrid", "room3", False)]
+    for seed, env in enumerate(envs):
+        env.reset(seed=seed)
+    plans = np.stack([fixed(0), fixed(1)], axis=1)  # (t, env)
+    together = run_episodes(envs, 30, lambda obs, t: one_hot(plans[t]))
+    for seed, (name, episode) in enumerate(zip(("room1", "room3"), together)):
+        env = make_env("minigrid", name, False)
+        env.reset(seed=seed)
+        alone = run_episode(env, 30, lambda obs, t: one_hot(fixed(seed)[t]))
+        for field in ("obs", "actions", "rewards"):
+            np.testing.assert_array_equal(getattr(episode, field), getattr(alone, field))
+    assert not np.array_equal(together[0].obs, together[1].obs)  # two episodes, not one twice
 
 
 # ---------------------------------------------------------------------------------------------------

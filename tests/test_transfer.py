@@ -346,21 +346,22 @@ PRE_STEPS = 100  # the catalogue's pre_rollout_steps
 
 
 class EpisodeLog:
-    """Wraps the trainer's run_episode: how each learner or evaluation episode started."""
+    """Wraps the trainer's run_episodes: how each learner or evaluation episode started."""
 
     def __init__(self, monkeypatch):
         from drago.train import trainer as trainer_module
 
         self.records: list[dict] = []
-        original = trainer_module.run_episode
+        original = trainer_module.run_episodes
 
-        def run(env, length, choose_action, start=None):
-            episode = original(env, length, choose_action, start)
-            self.records.append({"env": env, "pre_rollout": start is not None, "first": episode.obs[0].copy(),
-                                 "elapsed": env.elapsed_steps, "observations": len(episode.obs)})
-            return episode
+        def run(envs, length, choose_actions, start=None):
+            episodes = original(envs, length, choose_actions, start)
+            for env, episode in zip(envs, episodes):
+                self.records.append({"env": env, "pre_rollout": start is not None, "first": episode.obs[0].copy(),
+                                     "elapsed": env.elapsed_steps, "observations": len(episode.obs)})
+            return episodes
 
-        monkeypatch.setattr(trainer_module, "run_episode", run)
+        monkeypatch.setattr(trainer_module, "run_episodes", run)
 
 
 def manual_pre_rollout(env, ckpt: dict, steps: int = PRE_STEPS):
@@ -456,7 +457,7 @@ def test_x2y_episodes_start_after_a_pre_rollout_that_is_not_counted(jump2run, ch
     assert not np.allclose(records[1]["first"], plain)
     np.testing.assert_array_equal(records[1]["first"], pre)
     env = make_env("cheetah", "cheetah-run", action_repeat=4)
-    env.reset(seed=task_seed(1, 0, 3, 0))  # the evaluation env at env step 0
+    env.reset(seed=task_seed(1, 0, 3, 0, 0))  # the first evaluation env at env step 0
     plain, pre = manual_pre_rollout(env, ckpt)
     assert not np.allclose(records[0]["first"], plain)
     np.testing.assert_array_equal(records[0]["first"], pre)

@@ -92,7 +92,8 @@ class Agent:
     @torch.no_grad()
     def act(self, obs: np.ndarray, step: int, eval_mode: bool, first_step: bool,
             bonus: RewardBonus | None = None) -> np.ndarray:
-        """Plan one action for an observation (numpy in, numpy out)."""
+        """Plan one action for an observation (n,), or one for each of E observations (E, n) planned as a
+        batch, e.g. evaluation episodes played side by side (numpy in, numpy out)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         settings = self.plan_settings(step)
         if bonus is not None and self.cfg.precision != "float32":

@@ -101,26 +101,54 @@ def policy_trajectories(world_model: WorldModel, heads: TaskHeads, z0: torch.Ten
 
 def _policy_prior(world_model: WorldModel, heads: TaskHeads, z0: torch.Tensor, s: PlanSettings,
                   deterministic: bool) -> torch.Tensor | None:
-    """The policy's own trajectories, added to every CEM iteration's samples (``mixture_coef``)."""
+    """(h, E, P, n_a): the policy's own trajectories from each of the E start latents, added to every CEM
+    iteration's samples (``mixture_coef``)."""
     if s.num_policy_trajectories == 0:
         return None
-    return policy_trajectories(world_model, heads, z0, s.num_policy_trajectories, s.horizon, s.policy_std,
-                               deterministic)
+    count = s.num_policy_trajectories
+    starts = z0.repeat_interleave(count, dim=0)
+    trajectories = policy_trajectories(world_model, heads, starts, len(starts), s.horizon, s.policy_std, deterministic)
+    return trajectories.view(s.horizon, len(z0), count, -1)
 
 
-def _elite_weights(returns: torch.Tensor, num_elites: int, temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
-    elite_returns, elite_idx = torch.topk(returns, num_elites)
-    weights = torch.softmax(temperature * elite_returns, dim=0)  # = exp(T(G - max G)) normalised
-    return weights, elite_idx
+def _batched_returns(world_model: WorldModel, heads: TaskHeads, z0: torch.Tensor, actions: torch.Tensor,
+                     s: PlanSettings, bonus: RewardBonus | None, evaluator: Evaluator) -> torch.Tensor:
+    """(E, M) returns of the (h, E, M, n_a) candidate sequences, the E problems evaluated as one batch."""
+    horizon, problems, count = actions.shape[:3]
+    starts = z0[:, None].expand(problems, count, -1).reshape(problems * count, -1)
+    returns = trajectory_returns(world_model, heads, starts, actions.reshape(horizon, problems * count, -1),
+                                 s.discount, s.use_q, s.policy_std, bonus, evaluator)
+    return returns.view(problems, count)
+
+
+def _elites(actions: torch.Tensor, returns: torch.Tensor, num_elites: int,
+            temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(elite sequences (h, E, k, n_a), their weights (E, k)): each problem's k best, weighted by
+    exp(T(G - max G)) normalised."""
+    elite_returns, elite_idx = torch.topk(returns, num_elites, dim=-1)
+    weights = torch.softmax(temperature * elite_returns, dim=-1)
+    problems = torch.arange(len(returns), device=returns.device)[:, None]
+    return actions[:, problems, elite_idx], weights
 
 
 def _chosen_elite(elites: torch.Tensor, weights: torch.Tensor, selection: str) -> torch.Tensor:
-    """The first action of one elite sequence: the best, or one drawn in proportion to its weight.
+    """(E, n_a): each problem's first action of one elite sequence, the best or one drawn in proportion
+    to its weight.
 
-    Indexed with a one-element tensor, so a GPU never waits for the host to read the choice.
+    Gathered with index tensors, so a GPU never waits for the host to read the choice.
     """
-    choice = weights.argmax().view(1) if selection == "argmax" else torch.multinomial(weights, 1)
-    return elites[0].index_select(0, choice)[0]
+    choice = weights.argmax(-1, keepdim=True) if selection == "argmax" else torch.multinomial(weights, 1)
+    first = elites[0]  # (E, k, n_a)
+    return first.gather(1, choice[:, :, None].expand(-1, 1, first.shape[-1]))[:, 0]
+
+
+def _as_problems(obs: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    """(E, n) observations and whether a single (n,) observation was given."""
+    if obs.dim() == 1:
+        return obs[None], True
+    if obs.dim() != 2:
+        raise ValueError(f"observations must have shape (n,) or (E, n), got {tuple(obs.shape)}")
+    return obs, False
 
 
 @torch.no_grad()
@@ -128,25 +156,29 @@ def plan_discrete(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, 
                   eval_mode: bool, bonus: RewardBonus | None = None, evaluator: Evaluator = EAGER) -> torch.Tensor:
     """Categorical CEM over one-hot sequences; returns the first one-hot action of a chosen elite.
 
+    ``obs`` is one observation (n,) or E independent ones (E, n), e.g. E evaluation episodes played side
+    by side: their planning problems run as one batch and the result is (n_a,) or (E, n_a). With E = 1 the
+    draws and the arithmetic are those of a single problem, so batching never changes a training run.
+
     The categorical mean starts uniform (1/|A|; the official code's 1/h is a bug, spec §7.2.18).
     Exploration comes from CEM sampling and the stochastic elite choice; there is no action noise.
     """
-    n_a = world_model.action_dim
+    obs, single = _as_problems(obs)
+    problems, n_a = len(obs), world_model.action_dim
     z0 = world_model.encode(obs)
     pi_actions = _policy_prior(world_model, heads, z0, s, deterministic=eval_mode)
-    mean = obs.new_full((s.horizon, n_a), 1.0 / n_a)
+    mean = obs.new_full((s.horizon, problems, n_a), 1.0 / n_a)
     for _ in range(s.iterations):
-        idx = torch.multinomial(mean, s.num_samples, replacement=True)  # (h, num_samples)
-        actions = F.one_hot(idx, n_a).to(obs.dtype)
+        idx = torch.multinomial(mean.view(-1, n_a), s.num_samples, replacement=True)  # (h * E, num_samples)
+        actions = F.one_hot(idx, n_a).to(obs.dtype).view(s.horizon, problems, s.num_samples, n_a)
         if pi_actions is not None:
-            actions = torch.cat((actions, pi_actions), dim=1)
-        returns = trajectory_returns(world_model, heads, z0, actions, s.discount, s.use_q, s.policy_std, bonus,
-                                     evaluator)
-        weights, elite_idx = _elite_weights(returns, s.num_elites, s.temperature)
-        elites = actions[:, elite_idx]  # (h, k, n_a)
-        refit = (weights[None, :, None] * elites).sum(1)
+            actions = torch.cat((actions, pi_actions), dim=2)
+        returns = _batched_returns(world_model, heads, z0, actions, s, bonus, evaluator)
+        elites, weights = _elites(actions, returns, s.num_elites, s.temperature)
+        refit = (weights[None, :, :, None] * elites).sum(2)
         mean = s.momentum * mean + (1 - s.momentum) * refit
-    return _chosen_elite(elites, weights, s.elite_selection)
+    action = _chosen_elite(elites, weights, s.elite_selection)
+    return action[0] if single else action
 
 
 @torch.no_grad()
@@ -155,32 +187,37 @@ def plan_continuous(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor
                     evaluator: Evaluator = EAGER) -> tuple[torch.Tensor, torch.Tensor]:
     """Gaussian CEM with momentum; returns (action, mean to warm-start the next step's plan).
 
+    ``obs`` is one observation (n,) or E independent ones (E, n), planned as one batch (see
+    :func:`plan_discrete`); the action is then (n_a,) or (E, n_a) and the mean (h, n_a) or (h, E, n_a),
+    the shape ``warm_mean`` is expected in.
+
     The executed action is clipped to [-1, 1] after exploration noise, so the buffer stores what the
     simulator executes (the official code stores unclipped actions, spec §7.2.22).
     """
-    n_a = world_model.action_dim
+    obs, single = _as_problems(obs)
+    problems, n_a = len(obs), world_model.action_dim
     z0 = world_model.encode(obs)
     # TD-MPC keeps the continuous policy's noise even when evaluating.
     pi_actions = _policy_prior(world_model, heads, z0, s, deterministic=False)
-    mean = obs.new_zeros((s.horizon, n_a))
-    std = obs.new_full((s.horizon, n_a), s.max_std)
+    mean = obs.new_zeros((s.horizon, problems, n_a))
+    std = obs.new_full((s.horizon, problems, n_a), s.max_std)
     if warm_mean is not None:
+        warm_mean = warm_mean[:, None] if single else warm_mean
         shift = min(s.horizon - 1, warm_mean.shape[0] - 1)
         mean[:shift] = warm_mean[1:shift + 1]
     for _ in range(s.iterations):
-        noise = torch.randn(s.horizon, s.num_samples, n_a, dtype=obs.dtype, device=obs.device)
-        actions = (mean[:, None] + std[:, None] * noise).clamp(-1, 1)
+        noise = torch.randn(s.horizon, problems, s.num_samples, n_a, dtype=obs.dtype, device=obs.device)
+        actions = (mean[:, :, None] + std[:, :, None] * noise).clamp(-1, 1)
         if pi_actions is not None:
-            actions = torch.cat((actions, pi_actions), dim=1)
-        returns = trajectory_returns(world_model, heads, z0, actions, s.discount, s.use_q, s.policy_std, bonus,
-                                     evaluator)
-        weights, elite_idx = _elite_weights(returns, s.num_elites, s.temperature)
-        elites = actions[:, elite_idx]
-        refit_mean = (weights[None, :, None] * elites).sum(1)
-        refit_std = (weights[None, :, None] * (elites - refit_mean[:, None]).pow(2)).sum(1).sqrt()
+            actions = torch.cat((actions, pi_actions), dim=2)
+        returns = _batched_returns(world_model, heads, z0, actions, s, bonus, evaluator)
+        elites, weights = _elites(actions, returns, s.num_elites, s.temperature)
+        refit_mean = (weights[None, :, :, None] * elites).sum(2)
+        refit_std = (weights[None, :, :, None] * (elites - refit_mean[:, :, None]).pow(2)).sum(2).sqrt()
         mean = s.momentum * mean + (1 - s.momentum) * refit_mean
         std = refit_std.clamp(s.min_std, s.max_std)
     action = _chosen_elite(elites, weights, s.elite_selection)
     if not eval_mode:
         action = action + std[0] * torch.randn_like(action)
-    return action.clamp(-1, 1), mean
+    action = action.clamp(-1, 1)
+    return (action[0], mean[:, 0]) if single else (action, mean)

@@ -11,8 +11,10 @@ Two kinds live in a run's ``checkpoints/`` folder:
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -121,3 +123,20 @@ def _from_safe(value: Any) -> Any:
 def task_checkpoint_path(run_dir: str | Path, tasks: tuple[str, ...] | list[str], stage: int) -> Path:
     """Where a run saves its state after its ``stage``-th task (1-based): ``checkpoints/task<k>_<name>.pt``."""
     return Path(run_dir) / "checkpoints" / f"task{stage}_{tasks[stage - 1]}.pt"
+
+
+@contextlib.contextmanager
+def seeded_torch_rng(seed: int, device: torch.device | str = "cpu") -> Iterator[None]:
+    """Run a block on torch's global generator seeded with ``seed``, then restore the previous state.
+
+    The planner draws from the global generator; this gives a block (an evaluation, a pre-rollout, a
+    held-out recording) its own reproducible stream without moving the one training continues with.
+    """
+    device = torch.device(device)
+    cuda = [device.index if device.index is not None else torch.cuda.current_device()] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=cuda):
+        torch.default_generator.manual_seed(int(seed))
+        for index in cuda:
+            with torch.cuda.device(index):
+                torch.cuda.manual_seed(int(seed))
+        yield

@@ -25,7 +25,14 @@ from drago.agent.networks import WorldModel
 from drago.config import Config
 from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
 from drago.envs import EnvSpec, make_env, task_optimum
-from drago.train.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state, task_checkpoint_path
+from drago.train.checkpoint import (
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    seeded_torch_rng,
+    set_rng_state,
+    task_checkpoint_path,
+)
 from drago.train.logger import RunLogger
 from drago.train.resources import PeakMemory
 
@@ -40,22 +47,30 @@ class Episode:
         return float(self.rewards.sum())
 
 
-def run_episode(env, length: int, choose_action, start=None) -> Episode:
-    """Roll one fixed-length episode; ``choose_action(obs, t)`` returns the action to take.
+def run_episodes(envs, length: int, choose_actions, start=None) -> list[Episode]:
+    """Roll one fixed-length episode in each env, side by side; ``choose_actions(obs, t)`` maps the (E, n)
+    observations of step t to (E, n_a) actions, so one planner call serves every episode.
 
-    ``start(env)`` begins the episode and returns its first observation (None: ``env.reset()``); a
+    ``start(env)`` begins an episode and returns its first observation (None: ``env.reset()``); a
     transfer's pre-rollout (spec §1.2.5) is such a start, whose steps are not part of the episode.
     """
-    obs = env.reset()[0] if start is None else start(env)
+    obs = np.stack([env.reset()[0] if start is None else start(env) for env in envs]).astype(np.float32)
     observations, actions, rewards = [obs], [], []
     for t in range(length):
-        action = choose_action(obs, t)
-        obs, reward, _, _, _ = env.step(action)
+        action = np.asarray(choose_actions(obs, t), dtype=np.float32)
+        steps = [env.step(a) for env, a in zip(envs, action)]
+        obs = np.stack([step[0] for step in steps]).astype(np.float32)
         observations.append(obs)
         actions.append(action)
-        rewards.append(reward)
-    return Episode(np.asarray(observations, dtype=np.float32), np.asarray(actions, dtype=np.float32),
-                   np.asarray(rewards, dtype=np.float32))
+        rewards.append([step[1] for step in steps])
+    observations, actions = np.stack(observations), np.stack(actions)
+    rewards = np.asarray(rewards, dtype=np.float32)
+    return [Episode(observations[:, e], actions[:, e], rewards[:, e]) for e in range(len(envs))]
+
+
+def run_episode(env, length: int, choose_action, start=None) -> Episode:
+    """One episode of :func:`run_episodes`; ``choose_action(obs, t)`` maps one observation to one action."""
+    return run_episodes([env], length, lambda obs, t: np.asarray(choose_action(obs[0], t))[None], start)[0]
 
 
 def build_world_model(cfg: Config, spec: EnvSpec, device: torch.device) -> WorldModel:
@@ -83,6 +98,7 @@ class Trainer:
         self.progress = progress
         self.ckpt_dir = run_dir / "checkpoints"
         self._pre_rollout = None  # built on first use (transfer.pre_rollout_checkpoint)
+        self._eval_env_cache: tuple[str | None, list] = (None, [])
 
     # ---- paths and bookkeeping -------------------------------------------------------------
     def task_checkpoint(self, index: int) -> Path:
@@ -297,17 +313,22 @@ class Trainer:
         return env_step // self.cfg.train.eval_freq > last_eval_env // self.cfg.train.eval_freq
 
     def evaluate(self, task: TaskState) -> dict[str, float]:
-        """Mean undiscounted return of the learner's planner in eval mode on the current task."""
+        """Mean undiscounted return of the learner's planner in eval mode on the current task.
+
+        The ``eval_episodes`` episodes are played side by side, one batched plan per step, on a torch
+        stream of their own: how often a run evaluates never changes what it learns.
+        """
         cfg = self.cfg
         env_step = self.env_steps(task.step)
-        env = make_env(cfg.env.domain, task.name, cfg.env.dense_reward, action_repeat=cfg.env.action_repeat)
-        env.reset(seed=task_seed(cfg.train.seed, task.index, 3, env_step))
-        returns = []
-        for _ in range(cfg.train.eval_episodes):
-            episode = run_episode(env, cfg.env.episode_length,
-                                  lambda obs, t: task.learner.act(obs, task.step, eval_mode=True, first_step=t == 0),
-                                  self.episode_start(task.step))
-            returns.append(episode.ret)
+        envs = self._eval_envs(task)
+        for episode, env in enumerate(envs):
+            env.reset(seed=task_seed(cfg.train.seed, task.index, 3, env_step, episode))
+        with seeded_torch_rng(task_seed(cfg.train.seed, task.index, 6, env_step), self.device):
+            episodes = run_episodes(
+                envs, cfg.env.episode_length,
+                lambda obs, t: task.learner.act(obs, task.step, eval_mode=True, first_step=t == 0),
+                self.episode_start(task.step))
+        returns = [episode.ret for episode in episodes]
         result = {"episode_reward": float(np.mean(returns)), "episode_reward_std": float(np.std(returns))}
         optimum = task_optimum(cfg.env.domain, task.name, cfg.env.dense_reward)
         if optimum:
@@ -321,6 +342,15 @@ class Trainer:
         self.logger.print(f"[{task.name}] env_step {env_step:>7d}  eval return {result['episode_reward']:7.1f}"
                           + (f"  ({result['fraction_of_optimal']:.0%} of optimal {optimum:.1f})" if optimum else ""))
         return result
+
+    def _eval_envs(self, task: TaskState) -> list:
+        """One env per evaluation episode, built once per task."""
+        if self._eval_env_cache[0] != task.name:
+            cfg = self.cfg
+            self._eval_env_cache = (task.name, [
+                make_env(cfg.env.domain, task.name, cfg.env.dense_reward, action_repeat=cfg.env.action_repeat)
+                for _ in range(cfg.train.eval_episodes)])
+        return self._eval_env_cache[1]
 
     # ---- resumable snapshots -------------------------------------------------------------------
     def _save_resume(self, task: TaskState, env, elapsed: float, cpu_elapsed: float, last_eval_env: int,

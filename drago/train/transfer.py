@@ -30,11 +30,10 @@ planning). Those steps are neither stored nor counted; DRAGO's reviewer episodes
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import csv
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +45,7 @@ from drago.agent.agent import Agent
 from drago.agent.networks import linear_schedule
 from drago.config import Config, ConfigError, validate
 from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask
-from drago.train.checkpoint import task_checkpoint_path
+from drago.train.checkpoint import seeded_torch_rng, task_checkpoint_path
 from drago.train.run import CONFIG_FILE, RunDirError, new_run, read_run_config, resume
 from drago.train.trainer import Trainer
 
@@ -379,23 +378,6 @@ def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]
 
 
 # ---- pre-rollouts (spec §1.2.5) --------------------------------------------------------------------
-@contextlib.contextmanager
-def seeded_torch_rng(seed: int, device: torch.device | str = "cpu") -> Iterator[None]:
-    """Run a block on torch's global generator seeded with ``seed``, then restore the previous state.
-
-    The planner draws from the global generator; this gives a block (a pre-rollout, a held-out
-    recording) its own reproducible stream without moving the one training continues with.
-    """
-    device = torch.device(device)
-    cuda = [device.index if device.index is not None else torch.cuda.current_device()] if device.type == "cuda" else []
-    with torch.random.fork_rng(devices=cuda):
-        torch.default_generator.manual_seed(int(seed))
-        for index in cuda:
-            with torch.cuda.device(index):
-                torch.cuda.manual_seed(int(seed))
-        yield
-
-
 @dataclass
 class SavedLearner:
     """The learner a task checkpoint holds: its heads over that checkpoint's world model.

@@ -34,7 +34,7 @@ from drago.train.run import resume
 
 SMOKE = ["--no-progress", "train.tensorboard=false", "train.steps_per_task=200", "train.eval_freq=100"]
 TABLES = ("runs", "returns", "coverage", "metrics")
-TRANSFER_TABLES = ("transfer-episodes", "transfer-env-steps")
+TRANSFER_TABLES = ("transfer-episodes", "transfer-env-steps", "transfer-training")
 CASE = "room1to2-after2"
 
 
@@ -88,15 +88,17 @@ def copy_as_seed(run: Path, out: Path, seed: int, ignore: tuple[str, ...] = ()) 
 
 
 def unfinish(transfer: Path, episodes: int) -> Path:
-    """The transfer as it was after ``episodes`` learner episodes: no summary, later evaluations cut."""
+    """The transfer as it was after ``episodes`` learner episodes: no summary, later episodes and
+    evaluations cut."""
     (transfer / "summary.json").unlink()
-    with (transfer / "eval.csv").open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        columns, rows = reader.fieldnames, [r for r in reader if int(r["episode"]) <= episodes]
-    with (transfer / "eval.csv").open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(rows)
+    for name in ("eval.csv", "train.csv"):
+        with (transfer / name).open(newline="") as handle:
+            reader = csv.DictReader(handle)
+            columns, rows = reader.fieldnames, [r for r in reader if int(r["episode"]) <= episodes]
+        with (transfer / name).open("w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=columns)
+            writer.writeheader()
+            writer.writerows(rows)
     return transfer
 
 
@@ -347,6 +349,15 @@ def test_report_has_a_transfer_section(transfers, tmp_path):
     t = transfers
     # The folder gives the sequence runs (their transfers are found inside them); transfer directories
     # given directly join them, one of them twice (also found inside its run), counted once.
+    # Smoke learners never reach the sparse goal; drago seed 2 is given one episode that did (5 steps on it).
+    with (t["d2-t"] / "train.csv").open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        columns, rows = reader.fieldnames, list(reader)
+    rows[1]["episode_reward"] = "5.0"
+    with (t["d2-t"] / "train.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
     html_path, md_path = build_report([t["root"], t["d2-t"], t["d3-t"], t["d1-t"]], tmp_path / "report")
     page = parse(html_path.read_text())
     assert set(page.tables) == {f"table-{key}" for key in (*TABLES, *TRANSFER_TABLES)}
@@ -380,6 +391,24 @@ def test_report_has_a_transfer_section(transfers, tmp_path):
     assert (continual["seeds"], continual["learner episodes"], continual["total env steps"]) == ("1", "2", "200")
     assert (drago["seeds"], drago["learner episodes"], drago["total env steps"]) == ("3", "1", "200")
     assert drago["fraction of optimum"].startswith(f"{summary(t['d1-t'])['equal_env_steps']['fraction_of_optimal']:.2f}")
+
+    # The learners' own episodes, by hand from train.csv; drago seed 3 has not played both episodes yet.
+    def own(transfer: Path) -> list[float]:
+        with (transfer / "train.csv").open(newline="") as handle:
+            return [float(r["episode_reward"]) for r in csv.DictReader(handle)]
+
+    training = rows_by(page.tables["table-transfer-training"], "case", "method")
+    continual, drago = training[("room1to2 after 2", "continual")], training[("room1to2 after 2", "drago")]
+    c1 = own(t["c1-t"])
+    assert len(c1) == 2 and (continual["seeds"], continual["learner episodes"]) == ("1", "2")
+    assert continual["mean episode return"] == f"{np.mean(c1):.2f}"
+    assert continual["episodes with a positive return"] == f"{sum(r > 0 for r in c1):.2f}"
+    assert drago["seeds"] == "2" and len(own(t["d3-t"])) == 1
+    assert own(t["d1-t"]) == [0.0, 0.0] and own(t["d2-t"]) == [0.0, 5.0]
+    assert drago["mean episode return"].startswith("1.25 ± 1.77")  # seeds' means 0 and 2.5
+    assert drago["episodes with a positive return"].startswith("0.50 ± 0.71")
+    assert json.loads((t["c1-t"] / "summary.json").read_text())["transfer"]["training"] == {
+        "episodes": 2, "mean_return": np.mean(c1), "positive_episodes": sum(r > 0 for r in c1)}
 
     md = md_path.read_text()
     missing = md.split("## Missing", 1)[1]

@@ -20,7 +20,7 @@ import io
 import json
 import math
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -41,7 +41,7 @@ from drago.eval.coverage import (
 from drago.eval.metrics import continual_metrics, cw_forward_transfer
 from drago.eval.stats import summarize
 from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
-from drago.train.transfer import TRANSFER_FOLDER, transfer_summary
+from drago.train.transfer import TRANSFER_FOLDER, training_returns, transfer_summary
 
 __all__ = ["ReportError", "build_report", "find_run_dirs", "find_transfer_dirs"]
 
@@ -741,25 +741,49 @@ def _distinct(values: Iterable[Any], digits: int = 0) -> str:
     return ", ".join(dict.fromkeys(shown)) or "–"
 
 
+def _by_case(tgroups: dict[str, list[Run]], cases: list[Case]) -> Iterator[tuple[Case, str, list[Run]]]:
+    """(case, method label, that method's transfers of the case) for every pair that has any."""
+    for case in cases:
+        for label, runs in tgroups.items():
+            mine = [run for run in runs if run.case == case]
+            if mine:
+                yield case, label, mine
+
+
 def _transfer_tables(tgroups: dict[str, list[Run]], cases: list[Case],
                      blocks: dict[Path, dict[str, Any] | None]) -> list[Table]:
     tables = []
     for which, key, title, caption in _FEW_SHOT:
         rows = []
-        for case in cases:
-            for label, runs in tgroups.items():
-                mine = [run for run in runs if run.case == case]
-                if not mine:
-                    continue
-                points = [p for p in ((blocks[run.path] or {}).get("few_shot", {}).get(which) for run in mine) if p]
-                fraction, _ = _fmt([_number(p.get("fraction_of_optimal")) for p in points])
-                returns, _ = _fmt([_number(p.get("return")) for p in points])
-                rows.append((_case_name(case), label, str(len(points)), _distinct(p.get("episode") for p in points),
-                             _distinct(p.get("total_env_steps") for p in points), fraction, returns,
-                             _distinct(((blocks[run.path] or {}).get("optimal_return") for run in mine), 1)))
+        for case, label, mine in _by_case(tgroups, cases):
+            points = [p for p in ((blocks[run.path] or {}).get("few_shot", {}).get(which) for run in mine) if p]
+            fraction, _ = _fmt([_number(p.get("fraction_of_optimal")) for p in points])
+            returns, _ = _fmt([_number(p.get("return")) for p in points])
+            rows.append((_case_name(case), label, str(len(points)), _distinct(p.get("episode") for p in points),
+                         _distinct(p.get("total_env_steps") for p in points), fraction, returns,
+                         _distinct(((blocks[run.path] or {}).get("optimal_return") for run in mine), 1)))
         tables.append(Table(key, title, caption, ("case", "method", "seeds", "learner episodes", "total env steps",
                                                   "fraction of optimum", "return", "optimum"), rows))
     return tables
+
+
+def _training_table(tgroups: dict[str, list[Run]], cases: list[Case]) -> Table:
+    """The learners' own episode returns over the few-shot episodes (:func:`training_returns`)."""
+    rows = []
+    for case, label, mine in _by_case(tgroups, cases):
+        done = [t for t in (training_returns(run.cfg, run.path) for run in mine) if t]
+        mean_return, _ = _fmt([t["mean_return"] for t in done])
+        positive, _ = _fmt([t["positive_episodes"] for t in done])
+        rows.append((_case_name(case), label, str(len(done)), _distinct(t["episodes"] for t in done),
+                     mean_return, positive))
+    return Table("transfer-training", "Transfer: the learner's return while it learns",
+                 "The learner's own exploring episodes during the few-shot episodes (train.csv, not evaluations): "
+                 "the mean return per episode, and how many episodes had a positive return. On a sparse-reward "
+                 "grid task a positive return means the goal was reached, which the learner must see before its "
+                 "planner can head there; an evaluation return of 0 with no such episode says the goal was never "
+                 "found. Mean ± std [95% CI] over the seeds that have played every few-shot episode.",
+                 ("case", "method", "seeds", "learner episodes", "mean episode return",
+                  "episodes with a positive return"), rows)
 
 
 def _source_run(transfer: Run) -> Path:
@@ -1027,6 +1051,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         cases = sorted({run.case for run in transfers})
         blocks = {run.path: _transfer_block(run) for run in transfers}
         sections += _transfer_tables(tgroups, cases, blocks)
+        sections.append(_training_table(tgroups, cases))
         sections += _relearning_metrics(groups, transfers, blocks, findings)
         transfer_curves = _transfer_png(tgroups, cases, colours)
         if transfer_curves is not None:

@@ -328,6 +328,27 @@ def _eval_point(row: dict[str, str]) -> dict[str, Any]:
             "return_std": number("episode_reward_std"), "fraction_of_optimal": number("fraction_of_optimal")}
 
 
+def training_returns(cfg: Config, run_dir: Path) -> dict[str, Any] | None:
+    """The learner's own episode returns over the few-shot episodes, from ``train.csv``; None until it has
+    played them all.
+
+    These are exploring episodes, not evaluations. On a sparse-reward grid task they say whether the
+    learner ever reached the goal, which it must before its planner can head there: an evaluation return of
+    0 alone does not tell an agent that never found the goal from one that has not yet learned the way.
+    """
+    few = cfg.transfer.few_shot_episodes
+    path = Path(run_dir) / "train.csv"
+    if not path.is_file():
+        return None
+    with path.open(newline="") as handle:
+        returns = [float(r["episode_reward"]) for r in csv.DictReader(handle)
+                   if r.get("task") == cfg.env.tasks[0] and r.get("episode") and int(r["episode"]) <= few]
+    if len(returns) < few:
+        return None
+    return {"episodes": few, "mean_return": float(np.mean(returns)),
+            "positive_episodes": int(sum(r > 0 for r in returns))}
+
+
 def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The transfer block of ``summary.json``: few-shot scores and the budget actually spent.
 
@@ -370,6 +391,7 @@ def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]
         "optimal_return": task_optimum(cfg.env.domain, task, cfg.env.dense_reward),
         "episodes_planned": planned, "few_shot_episodes": few,
         "few_shot": {"equal_episodes": at_episodes, "equal_env_steps": at_env_steps},
+        "training": training_returns(cfg, run_dir),
         "final": points[-1] if done and points else None,
         "learner_env_steps": done["learner_steps"] * cfg.env.action_repeat if done else None,
         "total_env_steps": done["env_steps"] if done else None,

@@ -756,7 +756,8 @@ def test_compiled_agent_trains_on_the_smoke_preset(tmp_path):
 
     out = tmp_path / "run"
     assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
-                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.compile=true"]) == 0
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.compile=true",
+                     "train.eval_episodes=3"]) == 0  # evaluation plans 3 observations at once
     rows = [r for r in csv.DictReader((out / "train.csv").open()) if r["reviewer_value_loss"]]
     assert rows
     for r in rows:

@@ -41,7 +41,7 @@ from typing import Any
 
 from drago.config import Config, ConfigError, load_config
 from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
-from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir
+from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule
 
 __all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
            "config_diffs", "default_study_dir", "describe_plan", "parse_seeds", "plan_study", "run_study"]
@@ -247,14 +247,10 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         raise StudyError(f"seeds must be non-negative integers, got {' '.join(map(str, seeds)) or 'none'}")
     if jobs < 1:
         raise StudyError(f"--jobs must be a positive integer, got {jobs}")
-    if transfer_episodes < 1:
-        raise StudyError(f"--transfer-episodes must be a positive integer, got {transfer_episodes}")
-    if transfer_eval_every < 1:
-        raise StudyError(f"--transfer-eval-every must be a positive integer, got {transfer_eval_every}")
-    few_shot = min(DEFAULT_EPISODES, transfer_episodes)  # where `drago transfer` reads the few-shot score
-    if few_shot % transfer_eval_every:
-        raise StudyError(f"--transfer-eval-every {transfer_eval_every} does not divide the {few_shot} few-shot "
-                         f"episodes, so no evaluation would fall on them; choose a divisor of {few_shot}")
+    try:  # the check `drago transfer` makes, at plan time rather than when the first transfer starts
+        few_shot_schedule(transfer_episodes, eval_every=transfer_eval_every, flag="--transfer-")
+    except ConfigError as err:
+        raise StudyError(str(err)) from None
     cores = cores or available_cores()
     overrides = list(overrides)
     if not _has_threads(overrides):

@@ -285,7 +285,8 @@ def test_paper_cases_run_in_turn_skip_finished_ones_and_resume_unfinished_ones(t
 # One-line errors
 # ---------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("case", ["unknown-task", "after-too-large", "after-zero", "stage-not-finished",
-                                  "no-config", "episodes-zero", "exists", "missing-after", "paper-and-task"])
+                                  "no-config", "episodes-zero", "eval-every-misses-few-shot", "exists",
+                                  "missing-after", "paper-and-task"])
 def test_transfer_errors_are_one_line(sources, drago_transfer, tmp_path, capsys, case):
     source = sources["drago"]
     args = ["--task", "room1to2", "--after", "2", "--episodes", "1", "--out", str(tmp_path / "t")]
@@ -314,6 +315,10 @@ def test_transfer_errors_are_one_line(sources, drago_transfer, tmp_path, capsys,
     elif case == "episodes-zero":
         args[5] = "0"
         expected = ("--episodes", "positive")
+    elif case == "eval-every-misses-few-shot":
+        args[5] = "5"
+        args += ["--eval-every", "3"]
+        expected = ("--eval-every 3", "5 few-shot episodes")
     elif case == "exists":
         args = ["--task", "room1to2", "--after", "2", "--episodes", "2"]
         expected = ("already exists", "drago resume", "--force")

@@ -50,9 +50,9 @@ from drago.train.run import CONFIG_FILE, RunDirError, new_run, read_run_config, 
 from drago.train.trainer import Trainer
 
 __all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "PreRollout", "SavedLearner", "TransferCase", "default_transfer_dir",
-           "describe", "finished_stages", "load_learner", "new_transfer", "paper_cases", "resolve_task",
-           "run_paper_cases", "run_transfer", "seeded_torch_rng", "stage_checkpoint", "transfer_config",
-           "transfer_summary"]
+           "describe", "few_shot_schedule", "finished_stages", "load_learner", "new_transfer", "paper_cases",
+           "resolve_task", "run_paper_cases", "run_transfer", "seeded_torch_rng", "stage_checkpoint",
+           "training_returns", "transfer_config", "transfer_summary"]
 
 DEFAULT_EPISODES = 20  # learner episodes of a transfer (the few-shot protocol, spec §4.3)
 TRANSFER_FOLDER = "transfer"
@@ -124,6 +124,29 @@ def _check_stage(run_dir: Path, cfg: Config, after: int) -> Path:
     return path
 
 
+def few_shot_schedule(episodes: int, few_shot_episodes: int | None = None, eval_every: int = 1,
+                      flag: str = "--") -> int:
+    """The learner episode the few-shot score is read after (None: 20, or ``episodes`` if fewer), checked
+    against the episode budget and the evaluation period: an evaluation must fall on it.
+
+    Args:
+        flag: prefix of the option names in the error (``--transfer-`` for ``drago study``).
+
+    Raises:
+        ConfigError: one line naming the bad value.
+    """
+    if few_shot_episodes is None:
+        few_shot_episodes = min(DEFAULT_EPISODES, episodes)
+    for name, value in (("episodes", episodes), ("few-shot-episodes", few_shot_episodes),
+                        ("eval-every", eval_every)):
+        if value <= 0:
+            raise ConfigError(f"{flag}{name} must be a positive integer, got {value}")
+    if few_shot_episodes % eval_every:
+        raise ConfigError(f"{flag}eval-every {eval_every} does not divide the {few_shot_episodes} few-shot "
+                          f"episodes, so no evaluation would fall on them; choose a divisor of {few_shot_episodes}")
+    return few_shot_episodes
+
+
 def transfer_config(source: Config, task: str, checkpoint: str, after: int, episodes: int = DEFAULT_EPISODES,
                     learner_only: bool = False, few_shot_episodes: int | None = None, eval_every: int = 1,
                     dense_reward: bool | None = None, pre_rollout_checkpoint: str | None = None,
@@ -156,15 +179,7 @@ def transfer_config(source: Config, task: str, checkpoint: str, after: int, epis
                           f"{case.pre_rollout_source} learner: pass that task's checkpoint")
     if pre_rollout_steps is None:
         pre_rollout_steps = case.pre_rollout_steps if case is not None else 100
-    if few_shot_episodes is None:
-        few_shot_episodes = min(DEFAULT_EPISODES, episodes)
-    for name, value in (("--episodes", episodes), ("--few-shot-episodes", few_shot_episodes),
-                        ("--eval-every", eval_every)):
-        if value <= 0:
-            raise ConfigError(f"{name} must be a positive integer, got {value}")
-    if few_shot_episodes % eval_every:
-        raise ConfigError(f"--few-shot-episodes ({few_shot_episodes}) must be a multiple of --eval-every "
-                          f"({eval_every}), so that an evaluation falls on it")
+    few_shot_episodes = few_shot_schedule(episodes, few_shot_episodes, eval_every)
     cfg = copy.deepcopy(source)
     steps = episodes * cfg.env.episode_length
     cfg.env.tasks = (target,)

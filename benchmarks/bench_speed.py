@@ -46,7 +46,7 @@ from drago.config import load_config
 from drago.continual.base import Budget, TaskState, buffer_capacity
 from drago.continual.drago import Drago
 from drago.envs import env_spec, make_env
-from drago.train.resources import PeakMemory
+from drago.train.resources import PeakMemory, keep_freed_memory
 from drago.train.trainer import build_world_model, run_episode
 
 DEFAULT_PRESETS = ("minigrid", "minigrid-cpu", "cheetah-cpu")
@@ -319,11 +319,14 @@ def main() -> None:
     parser.add_argument("--compare", default=None, metavar="OLD.json", help="print new/old ratios against it")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    kept = keep_freed_memory()  # as every drago run does
 
-    print(f"torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}")
+    print(f"torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}, "
+          f"malloc keeps freed memory: {kept}")
     rows = [bench_preset(p, args) for p in args.presets]
     print_table(rows)
-    result = {"threads": args.threads, "torch": torch.__version__, "overrides": args.set or [], "presets": rows}
+    result = {"threads": args.threads, "torch": torch.__version__, "overrides": args.set or [],
+              "keep_freed_memory": kept, "presets": rows}
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     if args.compare:

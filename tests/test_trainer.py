@@ -334,3 +334,31 @@ def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
     assert train(uninterrupted, *longer) == 0
     for name in ("train.csv", "eval.csv"):
         assert (run / name).read_bytes() == (uninterrupted / name).read_bytes(), name
+
+
+FAULTS_OF_A_REPEATED_ALLOCATION = """
+import resource, sys, torch
+from drago.train.resources import keep_freed_memory
+print(keep_freed_memory())
+for _ in range(5):  # the heap grows to fit over the first rounds
+    torch.ones(2**24).sum()  # 64 MiB, freed at once
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+torch.ones(2**24).sum()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="glibc's allocator and Linux page-fault counts")
+@pytest.mark.parametrize("opt_out", [False, True])
+def test_freed_memory_is_reused_without_page_faults(opt_out):
+    """A 64 MiB tensor allocated again and again: with the allocator tuned for runs it reuses the freed
+    memory (no faults); with glibc's defaults every one of its 16,384 pages is faulted in again each time."""
+    env = {**os.environ, "DRAGO_KEEP_FREED_MEMORY": "0" if opt_out else "1"}
+    out = subprocess.run([sys.executable, "-c", FAULTS_OF_A_REPEATED_ALLOCATION], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    applied, faults = out[0] == "True", int(out[1])
+    assert applied is not opt_out
+    if opt_out:
+        assert faults >= 2**24 * 4 // 4096
+    else:
+        assert faults < 1000

@@ -14,6 +14,7 @@ from drago.continual import build_method
 from drago.envs import env_spec
 from drago.train.checkpoint import load_checkpoint
 from drago.train.logger import RunLogger
+from drago.train.resources import keep_freed_memory
 from drago.train.trainer import Trainer
 
 CONFIG_FILE = "config.yaml"
@@ -90,6 +91,7 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
 
 def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> Trainer:
     set_threads(cfg.train.threads)
+    keep_freed_memory()
     spec = env_spec(cfg.env.domain)
     # Methods may build networks of their own (DRAGO's VAE): seed them like everything else.
     torch.manual_seed(cfg.train.seed)

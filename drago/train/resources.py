@@ -40,14 +40,28 @@ def keep_freed_memory() -> bool:
     Returns:
         Whether the allocator was changed: False on other C libraries (macOS, musl) or when opted out.
     """
-    if os.environ.get(KEEP_FREED_MEMORY_ENV, "1") == "0" or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
+    libc = _glibc()
+    if os.environ.get(KEEP_FREED_MEMORY_ENV, "1") == "0" or libc is None:
         return False
     # The largest trim threshold mallopt accepts (an int): freed memory is never returned to the kernel.
     return bool(libc.mallopt(_M_MMAP_MAX, 0)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1))
+
+
+def _release_freed_memory() -> None:
+    """Hand the memory that malloc keeps (:func:`keep_freed_memory`) back to the kernel, so a peak measured
+    from here on is this stretch's own, not what an earlier one left in the heap."""
+    libc = _glibc()
+    if libc is not None:
+        libc.malloc_trim(0)
+
+
+def _glibc() -> ctypes.CDLL | None:
+    if platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
 
 
 class PeakMemory:
@@ -59,6 +73,7 @@ class PeakMemory:
 
     def start(self) -> None:
         gc.collect()
+        _release_freed_memory()
         try:
             Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
             self.resettable = True

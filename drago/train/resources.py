@@ -30,9 +30,10 @@ def keep_freed_memory() -> bool:
     By default glibc gives each large allocation a fresh mmap and returns free memory at the top of the heap
     to the kernel. The networks allocate and free the same large activations on every call, so each one
     came as new pages that the kernel zero-fills on first touch. At width 512 that was 180,000 page faults
-    per planned action and 100,000-170,000 per DRAGO gradient step, about a third of the planner's CPU time
-    (README, "Benchmarks"). With no mmaps and no trimming, both counts drop to zero; the price is a peak
-    resident memory about 10% higher, since freed memory stays with the process until it exits.
+    per planned action and 100,000-180,000 per DRAGO gradient step: a third of the planner's CPU time when
+    two jobs shared the cores, 8-14% of a DRAGO step on an idle machine (README, "Speed and precision").
+    With no mmaps and no trimming, both counts drop to zero; the price is a peak resident memory about 13%
+    higher, since freed memory stays with the process until it exits.
 
     Process-wide, so it is applied where a process starts its work (``drago`` runs, the benchmarks), never
     on import. Set ``DRAGO_KEEP_FREED_MEMORY=0`` to keep glibc's defaults.

@@ -6,8 +6,11 @@ Every user error ends as one line ``drago: error: ...`` on stderr with exit code
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 EXIT_USAGE = 2
@@ -318,7 +321,33 @@ def _cmd_study(args: argparse.Namespace) -> int:
 COMMANDS["study"] = _cmd_study
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """Make SIGTERM stop a command the way Ctrl-C does.
+
+    A shell script that starts ``drago study ... &`` (or under ``nohup``) makes it ignore SIGINT, so
+    ``kill PID`` (SIGTERM) is how such a job is stopped, and a study stops its own children that way too.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
 def main(argv: list[str] | None = None) -> int:
+    with _terminate_as_interrupt():
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     from drago.config import ConfigError
     from drago.train.checkpoint import CheckpointError
     from drago.train.run import RunDirError

@@ -487,10 +487,14 @@ def _lock(out: Path):
 
 
 def _stop(running: dict[Job, Any]) -> None:
-    """Interrupt the children (they exit as after Ctrl-C) and wait for them, killing those that linger."""
+    """Interrupt the children and wait for them, killing those that linger.
+
+    SIGTERM rather than SIGINT: children inherit an ignored SIGINT from a study started in the background,
+    and ``drago`` handles SIGTERM as it does Ctrl-C.
+    """
     for handle in running.values():
         if isinstance(handle, subprocess.Popen) and handle.poll() is None:
-            handle.send_signal(signal.SIGINT)
+            handle.send_signal(signal.SIGTERM)
     deadline = time.monotonic() + 15
     for handle in running.values():
         if isinstance(handle, subprocess.Popen):

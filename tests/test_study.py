@@ -314,3 +314,34 @@ def test_a_child_dies_with_its_study(tmp_path):
             parent.wait()
         if pid_file.is_file() and pid_file.read_text() and alive(int(pid_file.read_text())):
             os.kill(int(pid_file.read_text()), signal.SIGKILL)
+
+
+def test_sigterm_stops_a_background_study_and_its_jobs_like_ctrl_c(tmp_path):
+    """Started from a script in the background a study ignores SIGINT; `kill PID` stops it cleanly, and it
+    stops its jobs the same way, so the same command continues it."""
+    out = tmp_path / "killed"
+    argv = [sys.executable, "-c", "import sys; from drago.cli import main; sys.exit(main(sys.argv[1:]))",
+            *study_argv(out, "train.steps_per_task=100000"), "--no-transfer"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "continual" / "seed1" / "train.csv").is_file():  # the first job is training
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)  # ignored, as after `drago study ... &` in a script
+        time.sleep(0.5)
+        assert proc.poll() is None
+        stopped = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130
+    assert time.monotonic() - stopped < 10  # the job stopped on its signal, not killed after the study's wait
+    assert err.strip().splitlines()[-1].startswith("drago: interrupted; run the same `drago study` command again")
+    assert "drago: interrupted" in (out / "logs" / "continual-seed1.log").read_text()
+    assert [(j.label, j.state) for j in plan(out, "train.steps_per_task=100000", transfers=False).runs] == [
+        ("continual seed1", RESUME), ("scratch seed1", START)]

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from drago.config import Config, ConfigError, load_config
+from drago.train.resources import keep_freed_memory_requested
 from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
 from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule
 
@@ -237,8 +238,9 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     Raises:
         StudyError: A bad argument, or a directory holding something other than what the study would
             create there (one line naming it).
-        ConfigError: An unknown preset, method or setting.
+        ConfigError: An unknown preset, method or setting, or a bad ``DRAGO_KEEP_FREED_MEMORY``.
     """
+    keep_freed_memory_requested()  # checked once here: every job would fail on it
     methods = list(dict.fromkeys(methods))
     seeds = list(dict.fromkeys(int(s) for s in seeds))
     if not methods:

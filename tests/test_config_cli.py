@@ -164,6 +164,8 @@ BAD_INVOCATIONS = {
     "missing-preset": ["train"],
     "list-extra-argument": ["list", "extra"],
     "cuda-unavailable": ["train", "smoke", "train.device=cuda", OUT],
+    "allocator-env-maybe": ["train", "smoke", OUT],  # with DRAGO_KEEP_FREED_MEMORY=maybe
+    "study-allocator-env-maybe": ["study", "smoke", "--out", "{tmp}/study"],  # the same
 }
 
 MESSAGES: dict[str, str] = {}
@@ -175,6 +177,8 @@ def test_bad_invocation_is_one_line_and_exit_2(argv, tmp_path, capsys, monkeypat
     if name == "cuda-unavailable" and torch.cuda.is_available():
         pytest.skip("CUDA is available here")
     monkeypatch.chdir(tmp_path)  # a default run directory would land in tmp_path, never in the repo
+    if name in ("allocator-env-maybe", "study-allocator-env-maybe"):
+        monkeypatch.setenv("DRAGO_KEEP_FREED_MEMORY", "maybe")
     places = {"tmp": tmp_path}
     if any("{existing}" in a for a in argv):
         places["existing"] = _existing_run(tmp_path)
@@ -207,7 +211,8 @@ def test_bad_invocation_messages_name_the_problem(capsys):
         "elites-exceed-samples": "num_elites", "rho-out-of-range": "agent.rho", "unknown-device": "tpu",
         "override-without-equals": "mlp_dim", "unknown-option": "--bogus", "existing-run-dir": "--force",
         "resume-missing-dir": "does-not-exist", "resume-corrupt-checkpoint": "task1_room1.pt",
-        "unknown-subcommand": "frobnicate", "cuda-unavailable": "cuda",
+        "unknown-subcommand": "frobnicate", "cuda-unavailable": "cuda", "allocator-env-maybe": "DRAGO_KEEP_FREED_MEMORY",
+        "study-allocator-env-maybe": "DRAGO_KEEP_FREED_MEMORY",
     }
     if not MESSAGES:
         pytest.skip("run together with test_bad_invocation_is_one_line_and_exit_2")

@@ -25,6 +25,7 @@ from drago.config import Config, load_config
 from drago.continual import METHODS
 from drago.continual.naive import Continual, Scratch
 from drago.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from drago.train.resources import keep_freed_memory
 
 TASKS = ("room1", "room2", "room3", "room4")
 QUIET = ["--no-progress", "train.tensorboard=false"]
@@ -361,6 +362,12 @@ def test_freed_memory_is_reused_without_page_faults(opt_out):
         assert min(late_faults) >= 2**24 * 4 // 4096
     else:
         assert max(late_faults) < 1000
+
+
+@pytest.mark.parametrize("value", ["0", "false", "No", " off "])
+def test_every_spelling_of_no_keeps_the_allocator_defaults(value, monkeypatch):
+    monkeypatch.setenv("DRAGO_KEEP_FREED_MEMORY", value)
+    assert keep_freed_memory() is False
 
 
 PEAK_AFTER_A_LARGE_FREED_TENSOR = """

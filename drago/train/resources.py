@@ -17,6 +17,8 @@ from pathlib import Path
 
 import torch
 
+from drago.config import ConfigError
+
 
 # mallopt parameters, from glibc's malloc.h.
 _M_TRIM_THRESHOLD = -1
@@ -36,16 +38,32 @@ def keep_freed_memory() -> bool:
     higher, since freed memory stays with the process until it exits.
 
     Process-wide, so it is applied where a process starts its work (``drago`` runs, the benchmarks), never
-    on import. Set ``DRAGO_KEEP_FREED_MEMORY=0`` to keep glibc's defaults.
+    on import. Set ``DRAGO_KEEP_FREED_MEMORY=0`` (or ``false``, ``no``, ``off``) to keep glibc's defaults.
 
     Returns:
         Whether the allocator was changed: False on other C libraries (macOS, musl) or when opted out.
+
+    Raises:
+        ConfigError: the environment variable holds something other than a yes or a no.
     """
     libc = _glibc()
-    if os.environ.get(KEEP_FREED_MEMORY_ENV, "1") == "0" or libc is None:
+    if not keep_freed_memory_requested() or libc is None:
         return False
     # The largest trim threshold mallopt accepts (an int): freed memory is never returned to the kernel.
     return bool(libc.mallopt(_M_MMAP_MAX, 0)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1))
+
+
+def keep_freed_memory_requested() -> bool:
+    """Whether ``DRAGO_KEEP_FREED_MEMORY`` asks for :func:`keep_freed_memory` (unset: yes).
+
+    Raises:
+        ConfigError: it holds something other than a yes or a no.
+    """
+    value = os.environ.get(KEEP_FREED_MEMORY_ENV, "1").strip().lower()
+    if value not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+        raise ConfigError(f"environment variable {KEEP_FREED_MEMORY_ENV}={os.environ[KEEP_FREED_MEMORY_ENV]!r} "
+                          "is neither 1 nor 0; set it to 0 to keep glibc's allocator defaults, or unset it")
+    return value in ("1", "true", "yes", "on")
 
 
 def _release_freed_memory() -> None:

@@ -38,9 +38,16 @@ def set_threads(threads: int) -> None:
     torch.set_num_threads(threads or os.cpu_count() or 1)
 
 
+def _prepare_process(cfg: Config) -> None:
+    """Process-wide settings of a run, applied before it touches its directory (a bad one fails first)."""
+    set_threads(cfg.train.threads)
+    keep_freed_memory()
+
+
 def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = True) -> Trainer:
     """Create ``run_dir`` for ``cfg`` (refusing to overwrite a run unless ``force``) and build its trainer."""
     device = resolve_device(cfg.train.device)
+    _prepare_process(cfg)
     if run_dir.exists() and any(run_dir.iterdir()):
         if not force:
             raise RunDirError(f"run directory {run_dir} already exists; pass --force to overwrite it "
@@ -75,6 +82,7 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
     """Rebuild the trainer of an existing run; it continues where the last checkpoint left off."""
     cfg = read_run_config(run_dir)
     device = resolve_device(cfg.train.device)
+    _prepare_process(cfg)
     trainer = _build(cfg, run_dir, device, progress)
     # Read every finished task's checkpoint now, so a damaged one fails before any work starts.
     for index in range(trainer.completed_tasks()):
@@ -90,8 +98,6 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
 
 
 def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> Trainer:
-    set_threads(cfg.train.threads)
-    keep_freed_memory()
     spec = env_spec(cfg.env.domain)
     # Methods may build networks of their own (DRAGO's VAE): seed them like everything else.
     torch.manual_seed(cfg.train.seed)

@@ -11,6 +11,7 @@ For each preset it prints and records:
   measured for real when the composed estimate is under ``--measure-limit`` seconds, otherwise
   composed from the measured parts (``--full-iteration`` measures it anyway);
 * peak memory: the process's peak resident set size while the preset ran, and CUDA's max allocated;
+* minor page faults per call: fresh pages the kernel had to zero-fill, zero once malloc keeps freed memory;
 * utilisation: the FLOPs each component must do, counted from layer shapes by
   ``torch.utils.flop_counter.FlopCounterMode`` on one call, over its measured time, as a fraction of the
   machine's float32 matmul FLOP/s measured in this process just before the preset. The FLOP-limit time
@@ -32,6 +33,7 @@ import argparse
 import gc
 import json
 import platform
+import resource
 import statistics
 import time
 from pathlib import Path
@@ -59,24 +61,32 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def timed(fn, repeats: int, device: torch.device) -> float:
-    """Median seconds of ``fn`` over ``repeats`` calls, after one warm-up call."""
+def _minor_faults() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
+def timed(fn, repeats: int, device: torch.device) -> tuple[float, float]:
+    """(median seconds, minor page faults per call) of ``fn`` over ``repeats`` calls, after one warm-up call.
+
+    Page faults are the process's: each is a fresh page the kernel zero-fills, work the FLOP count does not see.
+    """
     fn()
     samples = []
+    faults = _minor_faults()
     for _ in range(repeats):
         _sync(device)
         t0 = time.perf_counter()
         fn()
         _sync(device)
         samples.append(time.perf_counter() - t0)
-    return statistics.median(samples)
+    return statistics.median(samples), (_minor_faults() - faults) / repeats
 
 
 def matmul_flops(device: torch.device, dtype: torch.dtype = torch.float32, n: int = 1024, repeats: int = 20) -> float:
     """FLOP/s of an n x n x n matmul (median of ``repeats``)."""
     a = torch.randn(n, n, device=device, dtype=dtype)
     b = torch.randn(n, n, device=device, dtype=dtype)
-    return 2 * n**3 / timed(lambda: a @ b, repeats, device)
+    return 2 * n**3 / timed(lambda: a @ b, repeats, device)[0]
 
 
 def count_flops(fn) -> int:
@@ -210,11 +220,11 @@ def bench_preset(name: str, args) -> dict:
         result["matmul_gflops_bfloat16"] = matmul_flops(device, torch.bfloat16) / 1e9
     for key, (fn, calls) in parts.items():
         repeats = 200 if key == "env_step" else args.repeats
-        seconds = timed(fn, repeats, device)
+        seconds, faults = timed(fn, repeats, device)
         flops = count_flops(twin_parts[key][0]) if key != "env_step" else 0
         result["components"][key] = {
             "ms": seconds * 1e3, "gflop": flops / 1e9, "flop_limit_ms": flops / rate * 1e3,
-            "utilisation": flops / seconds / rate, "calls_per_iteration": calls}
+            "utilisation": flops / seconds / rate, "calls_per_iteration": calls, "page_faults": faults}
 
     c = result["components"]
     L, U, freq = cfg.env.episode_length, cfg.updates_per_episode, cfg.method.rehearsal_freq
@@ -249,11 +259,12 @@ def print_table(rows: list[dict]) -> None:
               f"{', compiled' if r['compile'] else ''}, {r['device']}; "
               f"float32 matmul {r['matmul_gflops']:.1f} GFLOP/s"
               + (f" (bfloat16 {r['matmul_gflops_bfloat16']:.1f})" if "matmul_gflops_bfloat16" in r else ""))
-        print(f"  {'component':<16}{'ms':>10}{'GFLOP':>9}{'limit ms':>10}{'util':>7}{'x/iter':>8}")
+        print(f"  {'component':<16}{'ms':>10}{'GFLOP':>9}{'limit ms':>10}{'util':>7}{'x/iter':>8}{'faults':>9}")
         for key, c in r["components"].items():
             util = f"{c['utilisation']:.0%}" if c["gflop"] else "-"
             calls = c["calls_per_iteration"] or "-"  # 0: a reference or a part of drago_step
-            print(f"  {key:<16}{c['ms']:>10.2f}{c['gflop']:>9.3f}{c['flop_limit_ms']:>10.2f}{util:>7}{calls:>8}")
+            print(f"  {key:<16}{c['ms']:>10.2f}{c['gflop']:>9.3f}{c['flop_limit_ms']:>10.2f}{util:>7}{calls:>8}"
+                  f"{c['page_faults']:>9.0f}")
         it, mem = r["iteration"], r["memory"]
         seconds = it.get("measured_s", it["composed_s"])
         composed = f" (composed {it['composed_s']:.1f} s)" if it["how"] == "measured" else ""

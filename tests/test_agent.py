@@ -635,11 +635,12 @@ def test_precision_setting_is_validated():
         load_config("smoke", ["agent.precision=float16"])
 
 
-def _fit(precision: str, steps: int = 250) -> dict[str, float]:
+def _fit(precision: str, steps: int = 250, fast_tanh: bool = False) -> dict[str, float]:
     """Fit one agent to a fixed batch whose rewards and values sit near 300 (the grid's Q scale) and vary
     by a few units: in bfloat16 those outputs would be rounded to multiples of 2."""
     torch.manual_seed(0)
-    cfg = AgentConfig(mlp_dim=64, horizon=H, batch_size=64, discount=0.0, update_freq=1, precision=precision)
+    cfg = AgentConfig(mlp_dim=64, horizon=H, batch_size=64, discount=0.0, update_freq=1, precision=precision,
+                      fast_tanh=fast_tanh)
     wm = WorldModel(OBS, ACT, 64, use_crelu=True, squash=True)
     agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)
     with torch.no_grad():
@@ -670,6 +671,46 @@ def test_bfloat16_learns_like_float32(monkeypatch):
     broken = _fit("bfloat16")
     assert broken["reward_loss"] > 2 * full["reward_loss"]
     assert broken["value_loss"] > 2 * full["value_loss"]
+
+
+def test_fast_tanh_matches_tanh_and_its_gradient():
+    from drago.agent.networks import tanh
+
+    x = torch.linspace(-20, 20, 400_001, requires_grad=True)  # steps of 1e-4, saturated ends included
+    exact, fast = torch.tanh(x), tanh(x, fast=True)
+    torch.testing.assert_close(fast, exact, rtol=0, atol=3e-7)
+    assert fast[0].item() == -1.0 and fast[-1].item() == 1.0
+    g = torch.randn(x.shape, generator=torch.Generator().manual_seed(0))
+    (grad_exact,) = torch.autograd.grad(exact, x, g)
+    (grad_fast,) = torch.autograd.grad(fast, x, g)
+    torch.testing.assert_close(grad_fast, grad_exact, rtol=0, atol=2e-6)
+    with torch.no_grad():  # planning takes the path without autograd: the same values
+        assert torch.equal(tanh(x, fast=True), fast.detach())
+    assert torch.equal(tanh(x, fast=False), exact)
+
+
+def test_fast_tanh_reaches_the_heads_and_learns_like_tanh():
+    from drago.config import load_config
+
+    assert load_config("smoke").agent.fast_tanh is False  # default: bit-identical to torch.tanh
+    assert load_config("smoke", ["agent.fast_tanh=true"]).agent.fast_tanh is True
+    wm = make_world()
+    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), AgentConfig(mlp_dim=MLP, fast_tanh=True),
+                  discrete=False)
+    exact = make_heads(discrete=False)
+    exact.load_state_dict(agent.heads.state_dict())
+    perturb_last_layers(exact)
+    agent.heads.load_state_dict(exact.state_dict())
+    z, a = torch.rand(64, OBS) * 2 - 1, torch.rand(64, ACT) * 2 - 1
+    with torch.no_grad():
+        q_fast, q_exact = agent.heads.q_values(z, a), exact.q_values(z, a)
+        mu_fast, mu_exact = agent.heads.act(z, 0.0), exact.act(z, 0.0)
+    assert not torch.equal(q_fast, q_exact)  # the heads do take the sigmoid form ...
+    torch.testing.assert_close(q_fast, q_exact, rtol=1e-5, atol=1e-5)  # ... which agrees with tanh
+    torch.testing.assert_close(mu_fast, mu_exact, rtol=0, atol=3e-7)
+    full, fast = _fit("float32"), _fit("float32", fast_tanh=True)
+    for key in ("reward_loss", "value_loss", "consistency_loss"):
+        assert fast[key] == pytest.approx(full[key], rel=0.05), key
 
 
 def _filled_buffer(device_priorities: bool):

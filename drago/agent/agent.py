@@ -57,7 +57,8 @@ class Agent:
         self.discrete = discrete
         self.reviewer = reviewer
         device = next(world_model.parameters()).device
-        self.heads = TaskHeads(world_model.obs_dim, world_model.action_dim, cfg.mlp_dim, discrete).to(device)
+        self.heads = TaskHeads(world_model.obs_dim, world_model.action_dim, cfg.mlp_dim, discrete,
+                               fast_tanh=cfg.fast_tanh).to(device)
         # The policy has its own optimizer: the model loss never reaches it and the policy loss must
         # not move the critics.
         self.model_optimizer = torch.optim.Adam(

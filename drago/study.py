@@ -527,8 +527,8 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print, in_process: 
     """Run every unfinished job of ``plan``, then write the report.
 
     Jobs run ``plan.jobs`` at a time as child processes (``python -m drago.study ARGS``, which is ``drago
-    ARGS`` dying with this process), their output appended to ``job.log``. A transfer starts once its
-    run has finished; if the run fails, its transfers are not started. ``in_process`` runs the jobs one
+    ARGS`` dying with this process), their output appended to ``job.log``. Runs start before transfers;
+    a transfer starts once its run has finished; if the run fails, its transfers are not started. ``in_process`` runs the jobs one
     after the other in this process instead (for tests: a patched function is seen by the runs).
 
     Raises:
@@ -553,7 +553,10 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print, in_process: 
                     todo.remove(job)
                     job.status = "blocked"
                     line(job, f"not started: {job.label} (its run failed)")
-                ready = [j for j in todo if j.source is None or j.source.status == "done"]
+                # Runs before transfers: a run is the longest job and unlocks four, so starting runs
+                # first keeps the cores busy to the end instead of leaving one last run alone.
+                ready = sorted((j for j in todo if j.source is None or j.source.status == "done"),
+                               key=lambda j: j.kind == "transfer")
                 while ready and len(running) < plan.jobs:
                     job = ready.pop(0)
                     todo.remove(job)

@@ -180,6 +180,20 @@ def test_crash_then_the_same_command_finishes_with_the_logs_of_an_uninterrupted_
     assert snapshot(out) == snapshot(reference)  # byte-identical train.csv and eval.csv everywhere
 
 
+def test_runs_start_before_the_transfers_they_unlock(tmp_path, monkeypatch):
+    started = []
+
+    def launch(job):
+        started.append(job.label)
+        return study._Done(0)
+
+    monkeypatch.setattr(study, "_launch_in_process", launch)
+    p = plan(tmp_path / "order", methods=("continual", "scratch"), jobs=1)
+    run_study(p, echo=lambda line: None, in_process=True)
+    assert started[:2] == ["continual seed1", "scratch seed1"]
+    assert sorted(started[2:]) == sorted(j.label for j in p.transfers) and len(started) == 2 + 2 * len(CASES)
+
+
 def test_a_job_that_exits_with_an_error_fails_the_study_and_points_at_its_log(tmp_path):
     out = tmp_path / "failing"
     p = plan(out, methods=("continual",))

@@ -528,8 +528,9 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print, in_process: 
 
     Jobs run ``plan.jobs`` at a time as child processes (``python -m drago.study ARGS``, which is ``drago
     ARGS`` dying with this process), their output appended to ``job.log``. Runs start before transfers;
-    a transfer starts once its run has finished; if the run fails, its transfers are not started. ``in_process`` runs the jobs one
-    after the other in this process instead (for tests: a patched function is seen by the runs).
+    a transfer starts once its run has finished; if the run fails, its transfers are not started.
+    ``in_process`` runs the jobs one after the other in this process instead (for tests: a patched
+    function is seen by the runs).
 
     Raises:
         StudyError: Another study holds the folder's lock.

@@ -82,7 +82,7 @@ class AgentConfig:
     # and planning; output layers, losses, TD targets and optimizer state stay float32.
     precision: str = "float32"  # float32 or bfloat16
     compile: bool = False  # torch.compile the update's losses and the planner's per-step evaluation
-    # The heads' tanh (critics, policy mean) as 2*sigmoid(2x) - 1: within 2e-7 of torch.tanh, faster on
+    # The heads' tanh (critics, policy mean) as 2*sigmoid(2x) - 1: within 3e-7 of torch.tanh, faster on
     # CPUs where torch.tanh is not vectorised (README "Speed and precision"); off keeps runs bit-identical.
     fast_tanh: bool = False
 

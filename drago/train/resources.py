@@ -62,7 +62,8 @@ def keep_freed_memory_requested() -> bool:
     value = os.environ.get(KEEP_FREED_MEMORY_ENV, "1").strip().lower()
     if value not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
         raise ConfigError(f"environment variable {KEEP_FREED_MEMORY_ENV}={os.environ[KEEP_FREED_MEMORY_ENV]!r} "
-                          "is neither 1 nor 0; set it to 0 to keep glibc's allocator defaults, or unset it")
+                          "is not a yes or a no (1/0, true/false, yes/no, on/off); set it to 0 to keep glibc's "
+                          "allocator defaults, or unset it")
     return value in ("1", "true", "yes", "on")
 
 

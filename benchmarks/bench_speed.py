@@ -16,7 +16,11 @@ For each preset it prints and records:
   ``torch.utils.flop_counter.FlopCounterMode`` on one call, over its measured time, as a fraction of the
   machine's float32 matmul FLOP/s measured in this process just before the preset. The FLOP-limit time
   is FLOPs / matmul FLOP/s; for the iteration, ``measured / limit`` is the measured time over the sum
-  of its parts' FLOP-limit times (1.0 would be pure matmul at the machine's peak).
+  of its parts' FLOP-limit times (1.0 would be pure matmul at the machine's peak);
+* matmul kernels alone: each component's matrix multiplies, recorded on one call and replayed at the same
+  shapes and strides with nothing in between. It is the time the component cannot go below on this
+  machine while its maths stays the same (small matmuls run far below the n=1024 FLOP/s), and
+  ``ms - matmul ms`` is all the rest: elementwise kernels, normalisation, the optimizer, dispatch.
 
     .venv/bin/python benchmarks/bench_speed.py [--presets minigrid minigrid-cpu cheetah-cpu] [--threads 2]
         [--repeats 10] [--device cpu|cuda] [--set agent.precision=bfloat16 ...] [--json new.json]
@@ -40,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from drago.agent.agent import Agent
@@ -94,6 +99,55 @@ def count_flops(fn) -> int:
     with FlopCounterMode(display=False) as counter:
         fn()
     return int(counter.get_total_flops())
+
+
+_MATMULS = {torch.ops.aten.mm.default, torch.ops.aten.addmm.default, torch.ops.aten.bmm.default,
+            torch.ops.aten.baddbmm.default}  # the ops FlopCounterMode counts for these networks
+
+
+class MatmulRecorder(TorchDispatchMode):
+    """Records the matrix multiplies one call runs (op, argument layouts) so they can be replayed alone.
+
+    Only layouts are kept: replay builds one random tensor per distinct (shape, strides, dtype, device),
+    so transposed weights and broadcast biases keep the memory layout, and so the kernel, they had.
+    """
+
+    def __init__(self):
+        super().__init__()
+        self.calls: list[tuple] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func in _MATMULS:
+            layout = [(tuple(a.shape), a.stride(), a.dtype, a.device) if isinstance(a, torch.Tensor) else a
+                      for a in args]
+            self.calls.append((func, layout, dict(kwargs)))
+        return func(*args, **kwargs)
+
+    def replay_fn(self):
+        """A zero-argument callable that runs the recorded matmuls, in order, on stand-in tensors."""
+        tensors: dict[tuple, torch.Tensor] = {}
+
+        def stand_in(layout):
+            if layout not in tensors:
+                shape, stride, dtype, device = layout
+                span = 0 if 0 in shape else 1 + sum((n - 1) * st for n, st in zip(shape, stride))  # storage reached
+                tensors[layout] = torch.randn(span, dtype=dtype, device=device).as_strided(shape, stride)
+            return tensors[layout]
+
+        calls = [(func, [stand_in(a) if isinstance(a, tuple) else a for a in layout], kwargs)
+                 for func, layout, kwargs in self.calls]
+
+        def replay():
+            for func, args, kwargs in calls:
+                func(*args, **kwargs)
+        return replay
+
+
+def record_matmuls(fn) -> MatmulRecorder:
+    with MatmulRecorder() as recorder:
+        fn()
+    return recorder
 
 
 # ---- a DRAGO task-2 state ----------------------------------------------------------------------------
@@ -221,10 +275,15 @@ def bench_preset(name: str, args) -> dict:
     for key, (fn, calls) in parts.items():
         repeats = 200 if key == "env_step" else args.repeats
         seconds, faults = timed(fn, repeats, device)
-        flops = count_flops(twin_parts[key][0]) if key != "env_step" else 0
+        flops, matmul_s, matmuls = 0, 0.0, 0
+        if key != "env_step":
+            flops = count_flops(twin_parts[key][0])
+            recorder = record_matmuls(twin_parts[key][0])
+            matmul_s, matmuls = timed(recorder.replay_fn(), repeats, device)[0], len(recorder.calls)
         result["components"][key] = {
             "ms": seconds * 1e3, "gflop": flops / 1e9, "flop_limit_ms": flops / rate * 1e3,
-            "utilisation": flops / seconds / rate, "calls_per_iteration": calls, "page_faults": faults}
+            "utilisation": flops / seconds / rate, "matmul_ms": matmul_s * 1e3, "matmuls": matmuls,
+            "calls_per_iteration": calls, "page_faults": faults}
 
     c = result["components"]
     L, U, freq = cfg.env.episode_length, cfg.updates_per_episode, cfg.method.rehearsal_freq
@@ -234,8 +293,10 @@ def bench_preset(name: str, args) -> dict:
     step_flops = (c["drago_step"]["gflop"] - skip * c["rehearsal_step"]["gflop"]) * 1e9
     composed = L * (c["act"]["ms"] + c["reviewer_act"]["ms"] + 2 * c["env_step"]["ms"]) / 1e3 + U * step_s
     limit = (L * (c["act"]["gflop"] + c["reviewer_act"]["gflop"]) * 1e9 + U * step_flops) / rate
+    step_matmul_s = (c["drago_step"]["matmul_ms"] - skip * c["rehearsal_step"]["matmul_ms"]) / 1e3
+    matmul_alone = L * (c["act"]["matmul_ms"] + c["reviewer_act"]["matmul_ms"]) / 1e3 + U * step_matmul_s
     env_steps = 2 * L * cfg.env.action_repeat
-    iteration = {"env_steps": env_steps, "composed_s": composed, "flop_limit_s": limit}
+    iteration = {"env_steps": env_steps, "composed_s": composed, "flop_limit_s": limit, "matmul_alone_s": matmul_alone}
     if args.full_iteration or composed < args.measure_limit:
         iteration["measured_s"] = measure_iteration(method, task, cfg)
         iteration["how"] = "measured"
@@ -244,6 +305,7 @@ def bench_preset(name: str, args) -> dict:
     seconds = iteration.get("measured_s", composed)
     iteration["env_steps_per_s"] = env_steps / seconds
     iteration["measured_over_limit"] = seconds / limit
+    iteration["matmul_alone_share"] = matmul_alone / seconds
     result["iteration"] = iteration
     result["memory"] = memory.read()
     del method, task, parts, twin_parts
@@ -259,18 +321,22 @@ def print_table(rows: list[dict]) -> None:
               f"{', compiled' if r['compile'] else ''}, {r['device']}; "
               f"float32 matmul {r['matmul_gflops']:.1f} GFLOP/s"
               + (f" (bfloat16 {r['matmul_gflops_bfloat16']:.1f})" if "matmul_gflops_bfloat16" in r else ""))
-        print(f"  {'component':<16}{'ms':>10}{'GFLOP':>9}{'limit ms':>10}{'util':>7}{'x/iter':>8}{'faults':>9}")
+        print(f"  {'component':<16}{'ms':>10}{'GFLOP':>9}{'limit ms':>10}{'util':>7}{'mm ms':>10}{'mm %':>6}"
+              f"{'x/iter':>8}{'faults':>9}")
         for key, c in r["components"].items():
             util = f"{c['utilisation']:.0%}" if c["gflop"] else "-"
+            mm_ms = f"{c['matmul_ms']:.2f}" if c.get("matmuls") else "-"
+            mm_share = f"{c['matmul_ms'] / c['ms']:.0%}" if c.get("matmuls") else "-"
             calls = c["calls_per_iteration"] or "-"  # 0: a reference or a part of drago_step
-            print(f"  {key:<16}{c['ms']:>10.2f}{c['gflop']:>9.3f}{c['flop_limit_ms']:>10.2f}{util:>7}{calls:>8}"
-                  f"{c['page_faults']:>9.0f}")
+            print(f"  {key:<16}{c['ms']:>10.2f}{c['gflop']:>9.3f}{c['flop_limit_ms']:>10.2f}{util:>7}{mm_ms:>10}"
+                  f"{mm_share:>6}{calls:>8}{c['page_faults']:>9.0f}")
         it, mem = r["iteration"], r["memory"]
         seconds = it.get("measured_s", it["composed_s"])
         composed = f" (composed {it['composed_s']:.1f} s)" if it["how"] == "measured" else ""
         print(f"  task-2 iteration ({it['env_steps']} env steps): {seconds:.1f} s {it['how']}{composed}, "
               f"{it['env_steps_per_s']:.1f} env steps/s, "
               f"FLOP limit {it['flop_limit_s']:.1f} s, time/limit {it['measured_over_limit']:.2f}")
+        print(f"  its matmul kernels alone: {it['matmul_alone_s']:.1f} s, {it['matmul_alone_share']:.0%} of its time")
         cuda = mem.get("cuda_max_allocated_mib")
         extra = f", CUDA max allocated {cuda:.0f} MiB" if cuda is not None else ""
         print(f"  peak RSS {mem['peak_rss_mib']:.0f} MiB{extra}")
@@ -292,7 +358,7 @@ def flatten(row: dict, prefix: str = "") -> dict[str, float]:
     return out
 
 
-COMPARED = ("ms", "env_steps_per_s", "utilisation", "measured_over_limit", "peak_rss_mib", "cuda_max_allocated_mib",
+COMPARED = ("ms", "matmul_ms", "matmul_alone_s", "env_steps_per_s", "utilisation", "measured_over_limit", "peak_rss_mib", "cuda_max_allocated_mib",
             "matmul_gflops", "composed_s", "measured_s")
 
 

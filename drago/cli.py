@@ -11,7 +11,9 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 EXIT_USAGE = 2
 
@@ -81,7 +83,16 @@ def _cmd_train(args: argparse.Namespace) -> int:
     run_dir = args.out or default_run_dir(cfg)
     trainer = new_run(cfg, run_dir, force=args.force, progress=not args.no_progress)
     trainer.logger.print(f"drago train {cfg.preset} --method {cfg.method.name} --seed {cfg.train.seed} -> {run_dir}")
-    trainer.run()
+    return _until_interrupted(trainer.run, run_dir)
+
+
+def _until_interrupted(run: Callable[[], Any], run_dir: Path) -> int:
+    """Run ``run``; on Ctrl-C or SIGTERM print the exact command that continues it (exit 130)."""
+    try:
+        run()
+    except KeyboardInterrupt:
+        print(f"drago: interrupted; continue with `drago resume {run_dir}`", file=sys.stderr)
+        return 130
     return 0
 
 
@@ -95,8 +106,7 @@ def _cmd_resume(args: argparse.Namespace) -> int:
         trainer.write_summary()
         return 0
     trainer.logger.print(f"resuming {args.run_dir}: {done} of {len(trainer.cfg.env.tasks)} tasks complete")
-    trainer.run()
-    return 0
+    return _until_interrupted(trainer.run, args.run_dir)
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
@@ -221,8 +231,7 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
     trainer = new_transfer(args.run_dir, args.task, args.after, out=args.out, force=args.force,
                            progress=not args.no_progress, **options)
     trainer.logger.print(f"drago transfer {args.run_dir} --task {args.task} --after {args.after} -> {trainer.run_dir}")
-    run_transfer(trainer)
-    return 0
+    return _until_interrupted(lambda: run_transfer(trainer), trainer.run_dir)
 
 
 COMMANDS["transfer"] = _cmd_transfer

@@ -268,3 +268,17 @@ def test_list_settings_mentions_every_setting(capsys):
     assert "agent.mlp_dim" in keys and "train.steps_per_task" in keys
     for key in keys:
         assert key in out, key
+
+
+def test_interrupted_train_and_resume_name_the_run_to_continue(tmp_path, capsys, monkeypatch):
+    from drago.train.trainer import Trainer
+
+    def interrupted(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Trainer, "run", interrupted)
+    out = tmp_path / "run"
+    assert cli.main(["train", "smoke", "--out", str(out), "--no-progress"]) == 130
+    assert capsys.readouterr().err.strip() == f"drago: interrupted; continue with `drago resume {out}`"
+    assert cli.main(["resume", str(out), "--no-progress"]) == 130
+    assert capsys.readouterr().err.strip() == f"drago: interrupted; continue with `drago resume {out}`"

@@ -226,7 +226,13 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
                "few_shot_episodes": args.few_shot_episodes, "eval_every": args.eval_every,
                "dense_reward": None if args.reward is None else args.reward == "dense"}
     if args.paper_cases:
-        run_paper_cases(args.run_dir, out=args.out, force=args.force, progress=not args.no_progress, **options)
+        try:
+            run_paper_cases(args.run_dir, out=args.out, force=args.force, progress=not args.no_progress, **options)
+        except KeyboardInterrupt:  # the same command skips finished cases and resumes the others
+            again = "again without --force" if args.force else "again"  # --force would redo every case
+            print(f"drago: interrupted; run the same `drago transfer --paper-cases` command {again} to continue",
+                  file=sys.stderr)
+            return 130
         return 0
     trainer = new_transfer(args.run_dir, args.task, args.after, out=args.out, force=args.force,
                            progress=not args.no_progress, **options)

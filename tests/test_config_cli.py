@@ -282,3 +282,18 @@ def test_interrupted_train_and_resume_name_the_run_to_continue(tmp_path, capsys,
     assert capsys.readouterr().err.strip() == f"drago: interrupted; continue with `drago resume {out}`"
     assert cli.main(["resume", str(out), "--no-progress"]) == 130
     assert capsys.readouterr().err.strip() == f"drago: interrupted; continue with `drago resume {out}`"
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_interrupted_paper_cases_say_how_to_continue(force, tmp_path, capsys, monkeypatch):
+    from drago.train import transfer
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(transfer, "run_paper_cases", interrupted)
+    argv = ["transfer", str(tmp_path), "--paper-cases", *(["--force"] if force else [])]
+    assert cli.main(argv) == 130
+    again = "again without --force" if force else "again"
+    assert capsys.readouterr().err.strip() == (
+        f"drago: interrupted; run the same `drago transfer --paper-cases` command {again} to continue")

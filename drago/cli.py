@@ -11,9 +11,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 EXIT_USAGE = 2
 
@@ -83,17 +81,22 @@ def _cmd_train(args: argparse.Namespace) -> int:
     run_dir = args.out or default_run_dir(cfg)
     trainer = new_run(cfg, run_dir, force=args.force, progress=not args.no_progress)
     trainer.logger.print(f"drago train {cfg.preset} --method {cfg.method.name} --seed {cfg.train.seed} -> {run_dir}")
-    return _until_interrupted(trainer.run, run_dir)
-
-
-def _until_interrupted(run: Callable[[], Any], run_dir: Path) -> int:
-    """Run ``run``; on Ctrl-C or SIGTERM print the exact command that continues it (exit 130)."""
-    try:
-        run()
-    except KeyboardInterrupt:
-        print(f"drago: interrupted; continue with `drago resume {run_dir}`", file=sys.stderr)
-        return 130
+    with _on_interrupt(f"continue with `drago resume {run_dir}`"):
+        trainer.run()
     return 0
+
+
+class _Interrupted(Exception):
+    """Ctrl-C or SIGTERM during a command that knows how it is continued (the message says how)."""
+
+
+@contextlib.contextmanager
+def _on_interrupt(how_to_continue: str):
+    """Inside, an interrupt makes :func:`main` print ``how_to_continue`` instead of the generic hint."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise _Interrupted(how_to_continue) from None
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
@@ -106,7 +109,9 @@ def _cmd_resume(args: argparse.Namespace) -> int:
         trainer.write_summary()
         return 0
     trainer.logger.print(f"resuming {args.run_dir}: {done} of {len(trainer.cfg.env.tasks)} tasks complete")
-    return _until_interrupted(trainer.run, args.run_dir)
+    with _on_interrupt(f"continue with `drago resume {args.run_dir}`"):
+        trainer.run()
+    return 0
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
@@ -226,18 +231,17 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
                "few_shot_episodes": args.few_shot_episodes, "eval_every": args.eval_every,
                "dense_reward": None if args.reward is None else args.reward == "dense"}
     if args.paper_cases:
-        try:
+        # The same command skips finished cases and resumes the others; --force would redo every case.
+        again = "again without --force" if args.force else "again"
+        with _on_interrupt(f"run the same `drago transfer --paper-cases` command {again} to continue"):
             run_paper_cases(args.run_dir, out=args.out, force=args.force, progress=not args.no_progress, **options)
-        except KeyboardInterrupt:  # the same command skips finished cases and resumes the others
-            again = "again without --force" if args.force else "again"  # --force would redo every case
-            print(f"drago: interrupted; run the same `drago transfer --paper-cases` command {again} to continue",
-                  file=sys.stderr)
-            return 130
         return 0
     trainer = new_transfer(args.run_dir, args.task, args.after, out=args.out, force=args.force,
                            progress=not args.no_progress, **options)
     trainer.logger.print(f"drago transfer {args.run_dir} --task {args.task} --after {args.after} -> {trainer.run_dir}")
-    return _until_interrupted(lambda: run_transfer(trainer), trainer.run_dir)
+    with _on_interrupt(f"continue with `drago resume {trainer.run_dir}`"):
+        run_transfer(trainer)
+    return 0
 
 
 COMMANDS["transfer"] = _cmd_transfer
@@ -321,11 +325,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
         print(line, flush=True)
     if args.dry_run:
         return 0
-    try:
+    with _on_interrupt("run the same `drago study` command again to continue"):
         result = run_study(plan, echo=lambda line: print(line, flush=True))
-    except KeyboardInterrupt:
-        print("drago: interrupted; run the same `drago study` command again to continue", file=sys.stderr)
-        return 130
     if not result.ok:
         print(f"drago: {result.summary_line()}", file=sys.stderr)
         return 1
@@ -378,6 +379,9 @@ def _main(argv: list[str] | None) -> int:
     except (UsageError, ConfigError, CheckpointError, RunDirError) as err:
         print(f"drago: error: {err}", file=sys.stderr)
         return EXIT_USAGE
+    except _Interrupted as interrupted:
+        print(f"drago: interrupted; {interrupted}", file=sys.stderr)
+        return 130
     except BrokenPipeError:
         # `drago list | head`: the reader left; say nothing more and do not flush into a closed pipe.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

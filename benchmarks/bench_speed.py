@@ -54,7 +54,8 @@ from drago.continual.base import Budget, TaskState, buffer_capacity
 from drago.continual.drago import Drago
 from drago.envs import env_spec, make_env
 from drago.train.resources import PeakMemory, keep_freed_memory
-from drago.train.trainer import build_world_model, run_episode
+from drago.agent.networks import build_world_model
+from drago.train.episodes import run_episode
 
 DEFAULT_PRESETS = ("minigrid", "minigrid-cpu", "cheetah-cpu")
 

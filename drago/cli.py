@@ -72,7 +72,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from drago.config import load_config
+    from drago.api import load_config
     from drago.train.run import default_run_dir, new_run
 
     if args.seed is not None and args.seed < 0:
@@ -221,7 +221,7 @@ def _add_transfer_parser(sub) -> None:
 
 
 def _cmd_transfer(args: argparse.Namespace) -> int:
-    from drago.train.transfer import new_transfer, run_paper_cases, run_transfer
+    from drago.train.run import new_transfer, run_paper_cases, run_transfer
 
     if args.paper_cases and (args.task is not None or args.after is not None):
         raise UsageError("--paper-cases chooses the tasks and stages itself; drop --task and --after")
@@ -366,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     from drago.config import ConfigError
     from drago.train.checkpoint import CheckpointError
-    from drago.train.run import RunDirError
+    from drago.train.rundir import RunDirError
 
     try:
         args, extra = _parser().parse_known_args(argv)

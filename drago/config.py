@@ -5,8 +5,8 @@ lists only what differs from the defaults below (optionally on top of another pr
 Validation happens once, in :func:`load_config`; every error is a :class:`ConfigError` whose message
 is one line naming the bad key or value and the valid choices.
 
-The defaults are the paper's MiniGrid values (spec §2.6) with the official code's behaviour wherever
-paper and code disagree (spec §3.12); each such switch says so in its field comment.
+The defaults are the paper's MiniGrid values (paper Appendix A.1) with the official code's behaviour wherever
+paper and code disagree (docs: Design, paper and code); each such switch says so in its field comment.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ from importlib import resources
 from typing import Any
 
 import yaml
+
+from drago.envs import DOMAINS, available_tasks
 
 
 class ConfigError(ValueError):
@@ -40,7 +42,7 @@ class EnvConfig:
 
 @dataclass
 class AgentConfig:
-    """The TD-MPC agent as modified in DRAGO (spec §2)."""
+    """The TD-MPC agent as modified in DRAGO (paper §2; docs: Design, the agent)."""
 
     mlp_dim: int = 512
     use_crelu: bool = True  # CReLU dynamics as at the code's HEAD; the paper-era run used ELU (false)
@@ -49,7 +51,7 @@ class AgentConfig:
     batch_size: int = 512
     lr: float = 1e-3
     # None: a constant lr (paper and code). Otherwise every optimizer of a task decays linearly lr -> lr_final
-    # over its first lr_schedule_steps task steps; optimizers start afresh with each task (spec §3.10).
+    # over its first lr_schedule_steps task steps; optimizers start afresh with each task (paper §3.3; docs: Design, how a run flows).
     lr_final: float | None = None
     lr_schedule_steps: int = 300_000
     rho: float = 0.5  # temporal weight of the t-th loss term
@@ -62,7 +64,7 @@ class AgentConfig:
     first_step_qr_only: bool = False  # true: reward and value losses at t=0 only (code: DMC true, grid false)
     per_alpha: float = 0.6
     per_beta: float = 0.4
-    # Planning (spec §2.5).
+    # Planning (paper §2; docs: Design, the agent).
     iterations: int = 6
     num_samples: int = 512
     num_elites: int = 64
@@ -117,19 +119,19 @@ class MethodConfig:
     """The continual-learning method and the settings of every method (each reads only its own)."""
 
     name: str = "continual"
-    # -- DRAGO: generative model over (observation, action) (spec §3.2) --
+    # -- DRAGO: generative model over (observation, action) (paper §3.1) --
     vae_hidden_dim: int = 64  # code: 64 grid, 256 DMC (the paper's "vae latent dim")
     vae_latent_dim: int = 64
     vae_recon_coef: float = 1.0
     vae_kl_coef: float = 1.0  # code: 1.0 grid, 0.02 DMC; the paper's table says 0.02
     vae_data: str = "combined"  # combined: reviewer + learner rows (code); learner: learner rows only (paper Alg. 3)
-    # -- DRAGO: synthetic rehearsal (spec §3.3) --
+    # -- DRAGO: synthetic rehearsal (paper §3.1) --
     rehearsal_freq: int = 1  # every this many gradient steps (code: 1 grid, 10 DMC; paper: 10, 20)
     rehearsal_batch: int = 512
     rehearsal_mode: str = "separate"  # separate: own optimizer step of weight 1 (code); joint: lambda-weighted term (paper)
     rehearsal_lambda: float = 1.0  # weight of the rehearsal term in joint mode
     rehearsal_target: str = "pre_squash"  # pre_squash: raw MLP outputs (code); post_squash: as the planner sees them
-    # -- DRAGO: reviewer (spec §3.5-3.8) --
+    # -- DRAGO: reviewer (paper §3.2; docs: Design, paper and code) --
     intrinsic_reward: str = "code"  # code: sigmoid(4(-log MSE_old - theta)) - a*sigmoid(-log MSE_cur - theta); paper: no theta, abs error
     cost_coef: float = 0.5  # alpha, the weight of the current model's familiarity
     initial_threshold: float = 9.5  # theta of task 2 when the checkpoint has none
@@ -139,7 +141,7 @@ class MethodConfig:
     ewc_coef: float = 100.0  # weight of the quadratic penalty on the world model
     ewc_fisher_batches: int = 50  # batches of the task's data used to estimate the diagonal Fisher
     # -- bounded replay --
-    replay_capacity: int = 2163  # transitions kept across tasks; default: floats of the grid VAE (spec §2.1)
+    replay_capacity: int = 2163  # transitions kept across tasks; default: the grid VAE's memory (docs: Methods, replay)
     replay_fraction: float = 0.5  # share of world-model rows drawn from the old-task buffer
     # -- curiosity --
     curiosity_coef: float = 1.0  # prediction-error bonus added to the learner's TD target
@@ -147,7 +149,7 @@ class MethodConfig:
 
 @dataclass
 class TransferConfig:
-    """A test task learned from another run's world model (spec §4.2); see `drago transfer`.
+    """A test task learned from another run's world model (paper §4.4); see `drago transfer`.
 
     Unset (the default) in a continual run. `drago transfer` writes these settings into the transfer
     run's config, so `drago resume` continues a transfer like any other run.
@@ -161,7 +163,7 @@ class TransferConfig:
     # rehearsal and VAE updates; EWC's penalty; ...). False: they keep running, as in the official code.
     learner_only: bool = False
     few_shot_episodes: int = 20  # summary.json reads the few-shot score after this many learner episodes
-    # DMC "X2Y" test tasks (spec §1.2.5): every learner and evaluation episode starts with a reset followed by
+    # DMC "X2Y" test tasks (paper §4.4, Table 1): every learner and evaluation episode starts with a reset followed by
     # pre_rollout_steps agent steps of the learner saved in this task checkpoint (its heads and world model,
     # eval-mode planning); those steps are neither stored nor counted. Relative to this run's directory.
     pre_rollout_checkpoint: str | None = None
@@ -200,7 +202,6 @@ class Config:
 
 
 SECTIONS = ("env", "agent", "train", "method", "transfer")
-DOMAINS = ("minigrid", "cheetah", "walker")
 ELITE_SELECTIONS = ("sample", "argmax")
 PRECISIONS = ("float32", "bfloat16")
 PRE_ROLLOUT_PLANNING = ("source", "code")
@@ -371,13 +372,11 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
 
 
 def validate(cfg: Config) -> None:
-    """Check ranges and names once, so nothing fails an hour into a run."""
-    from drago.continual import available_methods
-    from drago.envs import available_tasks
+    """Check ranges and names once, so nothing fails an hour into a run.
 
-    methods = available_methods()
-    if cfg.method.name not in methods:
-        raise ConfigError(f"unknown method '{cfg.method.name}'; valid methods: {', '.join(methods)}")
+    The method's name is checked where methods are known (:func:`drago.continual.check_method`): settings
+    sit below the methods that read them.
+    """
     if cfg.env.domain not in DOMAINS:
         raise ConfigError(f"unknown domain '{cfg.env.domain}'; valid domains: {', '.join(DOMAINS)}")
     if cfg.env.domain == "minigrid" and cfg.env.action_repeat != 1:

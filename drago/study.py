@@ -5,7 +5,7 @@ A study is a plan of jobs, each one ``drago`` command line, worked out from what
 
 * one sequence run per (method, seed) in ``OUT/METHOD/seedS``: ``drago train`` if it was never
   started, ``drago resume`` if it was interrupted, nothing if its ``summary.json`` says it is complete;
-* for every run, the paper's transfer cases of its domain (spec §4.2) in
+* for every run, the paper's transfer cases of its domain (paper §4.4) in
   ``RUN_DIR/transfer/TASK-afterK``, the same way (``drago transfer --task T --after K``, ``drago
   resume``, or nothing), each started once its run has finished. A case whose stage is beyond the
   sequence (a two-task run has no stage 3) is left out, and the plan says so;
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import json
 import os
 import signal
 import statistics
@@ -40,25 +39,22 @@ from pathlib import Path
 from typing import Any
 
 from drago.config import Config, ConfigError, load_config
+from drago.continual import check_method
 from drago.train.resources import keep_freed_memory_requested
-from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
-from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule
+from drago.train.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
+from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule, plan_transfer
 
 __all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
-           "config_diffs", "default_study_dir", "describe_plan", "parse_seeds", "plan_study", "run_study"]
+           "default_study_dir", "describe_plan", "parse_seeds", "plan_study", "run_study"]
 
 DEFAULT_PRESET = "minigrid-cpu"
 DEFAULT_METHODS = ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer")
 DEFAULT_SEEDS = (1, 2, 3)
-SUMMARY_FILE = "summary.json"
 LOG_FOLDER = "logs"
 REPORT_FOLDER = "report"
 LOCK_FILE = ".study.lock"
 TRANSFERS_CSV = "transfers.csv"
 TRANSFERS_MD = "transfers.md"
-#: Settings a study may change without making an existing run "another run": the thread count follows
-#: --jobs, and a run keeps the count it started with (``drago resume`` uses the recorded config).
-IGNORED_SETTINGS = ("train.threads",)
 PARENT_ENV = "DRAGO_STUDY_PARENT"
 
 START, RESUME, DONE = "start", "resume", "done"
@@ -169,38 +165,13 @@ class StudyPlan:
         return order
 
 
-def config_diffs(existing: Config, wanted: Config, ignore: Sequence[str] = IGNORED_SETTINGS) -> list[str]:
-    """``key: value there, value here`` for every setting in which two configs differ."""
-    there, here = Config.from_dict(existing.to_dict()).to_dict(), Config.from_dict(wanted.to_dict()).to_dict()
-
-    def flat(data: dict[str, Any]) -> dict[str, Any]:
-        out = {}
-        for key, value in data.items():
-            if isinstance(value, dict):
-                out.update({f"{key}.{k}": v for k, v in value.items()})
-            else:
-                out[key] = value
-        return out
-
-    there, here = flat(there), flat(here)
-    return [f"{key}: {there.get(key)!r} there, {here.get(key)!r} here" for key in dict.fromkeys([*here, *there])
-            if key not in ignore and there.get(key) != here.get(key)]
-
-
-def _complete(directory: Path) -> bool:
-    try:
-        return json.loads((directory / SUMMARY_FILE).read_text()).get("complete") is True
-    except (OSError, ValueError, AttributeError):
-        return False
-
-
 def _state(directory: Path, wanted: Callable[[], Config], what: str) -> tuple[str, Config | None]:
     """START, RESUME or DONE for ``directory``, and the config it holds; refuses other settings."""
     if not directory.is_dir() or not any(directory.iterdir()):
         if directory.exists() and not directory.is_dir():
             raise StudyError(f"{directory} is a file, not a run directory; delete it or choose another --out")
         return START, None
-    if not (directory / CONFIG_FILE).is_file():
+    if not is_run_dir(directory):
         raise StudyError(f"{directory} is not empty and not a drago run; delete it or choose another --out")
     existing = read_run_config(directory)
     diffs = config_diffs(existing, wanted())
@@ -208,7 +179,7 @@ def _state(directory: Path, wanted: Callable[[], Config], what: str) -> tuple[st
         more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
         raise StudyError(f"{directory} holds a {what} with other settings than this study's "
                          f"({'; '.join(diffs[:3])}{more}); choose another --out or delete {directory}")
-    return (DONE if _complete(directory) else RESUME), existing
+    return (DONE if is_complete(directory) else RESUME), existing
 
 
 def _has_threads(overrides: Sequence[str]) -> bool:
@@ -258,7 +229,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     if not _has_threads(overrides):
         overrides.append(f"train.threads={max(1, cores // jobs)}")
     out = Path(out) if out is not None else default_study_dir(preset)
-    base = load_config(preset, overrides, method=methods[0], seed=seeds[0])
+    base = check_method(load_config(preset, overrides, method=methods[0], seed=seeds[0]))
     cases = PAPER_CASES.get(base.env.domain, ()) if transfers else ()
     n_tasks = len(base.env.tasks)
     kept = tuple((task, after) for task, after in cases if after <= n_tasks)
@@ -277,7 +248,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     logs = out / LOG_FOLDER
     for seed in seeds:
         for method in methods:
-            cfg = load_config(preset, overrides, method=method, seed=seed)
+            cfg = check_method(load_config(preset, overrides, method=method, seed=seed))
             run_dir = out / method / f"seed{seed}"
             label = f"{method} seed{seed}"
             state, existing = _state(run_dir, lambda cfg=cfg: cfg, "run")
@@ -298,13 +269,11 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
 
 
 def _transfer_job(run: Job, task: str, after: int, episodes: int, eval_every: int, logs: Path) -> Job:
-    from drago.train.transfer import _planned
-
     case_dir = default_transfer_dir(run.directory, task, after)
 
     def wanted() -> Config:
         # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N` would write.
-        return _planned(run.directory, task, after, None, episodes=episodes, eval_every=eval_every)[0]
+        return plan_transfer(run.directory, task, after, None, episodes=episodes, eval_every=eval_every)[0]
 
     state, _ = _state(case_dir, wanted, "transfer")
     argv = {START: ["transfer", str(run.directory), "--task", task, "--after", str(after), "--episodes", str(episodes),
@@ -332,11 +301,11 @@ def _duration(seconds: float) -> str:
 def _wall_time(job: Job) -> float | None:
     """Seconds a finished job took, from its summary."""
     try:
-        summary = json.loads((job.directory / SUMMARY_FILE).read_text())
+        summary = read_summary(job.directory)  # None before the first task: a TypeError below
         if job.kind == "transfer":
             return float(summary["transfer"]["wall_time_s"])
         return float(sum(t["wall_time_s"] for t in summary["tasks"]))
-    except (OSError, ValueError, KeyError, TypeError):
+    except (RunDirError, KeyError, TypeError):
         return None
 
 
@@ -448,22 +417,20 @@ def _launch_process(job: Job) -> subprocess.Popen:
     with job.log.open("a") as log:
         log.write(_header(job))
         log.flush()
-        return subprocess.Popen([sys.executable, "-m", "drago.study", *job.argv], stdin=subprocess.DEVNULL,
+        return subprocess.Popen([sys.executable, "-m", "drago", *job.argv], stdin=subprocess.DEVNULL,
                                 stdout=log, stderr=subprocess.STDOUT, env=env)
 
 
-def _launch_in_process(job: Job) -> _Done:
-    from drago import cli
-
+def _launch_in_process(job: Job, command: Callable[[list[str]], int]) -> _Done:
     job.log.parent.mkdir(parents=True, exist_ok=True)
     with job.log.open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         log.write(_header(job))
         try:
-            code = cli.main(job.argv)
+            code = command(job.argv)
         except Exception:  # a crash of the run, as a child process would exit with it
             traceback.print_exc(file=log)
             code = 1
-    if code == 130:  # cli.main turned Ctrl-C into exit code 130
+    if code == 130:  # the command line turned Ctrl-C into exit code 130
         raise KeyboardInterrupt
     return _Done(code)
 
@@ -510,7 +477,7 @@ def _stop(running: dict[Job, Any]) -> None:
 def _outcome(job: Job) -> str:
     """A short result of a finished job for its console line."""
     try:
-        summary = json.loads((job.directory / SUMMARY_FILE).read_text())
+        summary = read_summary(job.directory)  # None before the first task: a TypeError below
         if job.kind == "transfer":
             point = summary["transfer"]["few_shot"]["equal_episodes"]
             frac = point.get("fraction_of_optimal")
@@ -518,25 +485,26 @@ def _outcome(job: Job) -> str:
         ends = [f"{t['name']} {t['fraction_of_optimal']:.0%}" for t in summary["tasks"]
                 if t.get("fraction_of_optimal") is not None]
         return ("final eval, of optimal: " + ", ".join(ends)) if ends else ""
-    except (OSError, ValueError, KeyError, TypeError):
+    except (RunDirError, KeyError, TypeError):
         return ""
 
 
-def run_study(plan: StudyPlan, echo: Callable[[str], None] = print, in_process: bool = False,
-              poll_seconds: float = 0.2) -> StudyResult:
+def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
+              in_process: Callable[[list[str]], int] | None = None, poll_seconds: float = 0.2) -> StudyResult:
     """Run every unfinished job of ``plan``, then write the report.
 
-    Jobs run ``plan.jobs`` at a time as child processes (``python -m drago.study ARGS``, which is ``drago
-    ARGS`` dying with this process), their output appended to ``job.log``. Runs start before transfers;
+    Jobs run ``plan.jobs`` at a time as child processes (``python -m drago ARGS``, which is ``drago ARGS``
+    dying with this process), their output appended to ``job.log``. Runs start before transfers;
     a transfer starts once its run has finished; if the run fails, its transfers are not started.
-    ``in_process`` runs the jobs one after the other in this process instead (for tests: a patched
-    function is seen by the runs).
+    ``in_process``, the command line's ``main``, runs the jobs one after the other in this process
+    instead (for tests: a patched function is seen by the runs).
 
     Raises:
         StudyError: Another study holds the folder's lock.
         KeyboardInterrupt: After the running children were interrupted and have exited.
     """
-    launch: Callable[[Job], Any] = _launch_in_process if in_process else _launch_process
+    launch: Callable[[Job], Any] = (_launch_process if in_process is None
+                                    else lambda job: _launch_in_process(job, in_process))
     todo = [job for job in plan.ordered if job.state != DONE]
     total, count = len(todo), 0
     finished: list[Job] = []
@@ -598,7 +566,7 @@ def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Pa
     from drago.eval.report import build_report
     from drago.train.checkpoint import CheckpointError
 
-    run_dirs = [job.directory for job in plan.runs if (job.directory / CONFIG_FILE).is_file()]
+    run_dirs = [job.directory for job in plan.runs if is_run_dir(job.directory)]
     if not run_dirs:
         return [], "no run of the study has started"
     try:
@@ -620,13 +588,13 @@ TRANSFER_COLUMNS = ("method", "seed", "task", "after", "complete", "few_shot_epi
 
 
 def transfer_rows(jobs: Iterable[Job]) -> list[dict[str, Any]]:
-    """One row per transfer case that has a summary: its few-shot scores, read in both ways (spec §4.3)."""
+    """One row per transfer case that has a summary: its few-shot scores, read in both ways (paper §4.4)."""
     rows = []
     for job in jobs:
         try:
-            summary = json.loads((job.directory / SUMMARY_FILE).read_text())
+            summary = read_summary(job.directory)  # None before the first task: a TypeError below
             block = summary["transfer"]
-        except (OSError, ValueError, KeyError, TypeError):
+        except (RunDirError, KeyError, TypeError):
             continue
         few = block.get("few_shot") or {}
         at_episodes, at_steps = few.get("equal_episodes") or {}, few.get("equal_env_steps") or {}
@@ -663,7 +631,7 @@ def write_transfer_tables(rows: list[dict[str, Any]], out_dir: Path) -> list[Pat
     cases = list(dict.fromkeys((r["task"], r["after"]) for r in rows))
     optimum = {(r["task"], r["after"]): r["optimal_return"] for r in rows}
     lines = ["# Transfers: few-shot return", "",
-             "Evaluation return on each test task learned from the world model saved after stage K (spec §4.2-4.3): "
+             "Evaluation return on each test task learned from the world model saved after stage K (paper §4.4): "
              "mean ± std over seeds (number of seeds). Rows of unfinished cases are left out until they reach the "
              "score. Per-seed values and fractions of the DP optimum are in "
              f"`{TRANSFERS_CSV}`; each case's curves in its `eval.csv`."]
@@ -695,16 +663,11 @@ def _die_with_parent() -> None:
         pass
 
 
-def _child_main(argv: list[str]) -> int:
-    """``drago ARGS`` in a study's child process: it does not outlive the study that started it."""
+def become_child() -> bool:
+    """Make this process a study job that does not outlive its study; False if the study is already gone.
+
+    ``python -m drago`` calls it when it was started by a study (the study sets the variable it reads).
+    """
     _die_with_parent()
     parent = os.environ.get(PARENT_ENV)
-    if parent and os.getppid() != int(parent):  # the study died before the line above took effect
-        return 1
-    from drago import cli
-
-    return cli.main(argv)
-
-
-if __name__ == "__main__":
-    sys.exit(_child_main(sys.argv[1:]))
+    return not (parent and os.getppid() != int(parent))  # the study died before the line above took effect

@@ -1,4 +1,4 @@
-"""Behaviour tests of the TD-MPC agent against the closed forms of spec §2.1-2.5.
+"""Behaviour tests of the TD-MPC agent against the closed forms of paper §2; docs: Design, the agent.
 
 Every network is tiny (mlp_dim 16). The expected values are written out from the spec's formulas
 with explicit loops, never by calling the code under test a second time.
@@ -19,6 +19,7 @@ from drago.agent.losses import model_losses, policy_loss
 from drago.agent.networks import TaskHeads, WorldModel, autocast
 from drago.agent.planner import PlanSettings, plan_continuous, plan_discrete, trajectory_returns
 from drago.config import AgentConfig
+from helpers import filled_buffer
 
 OBS, ACT, B, H = 3, 3, 4, 3
 RHO, GAMMA = 0.5, 0.99
@@ -100,7 +101,7 @@ def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
 
 
 # ---------------------------------------------------------------------------------------------------
-# 1. Closed forms of the losses (spec §2.1 zero last layers, §2.3)
+# 1. Closed forms of the losses (paper §2; docs: Design, the agent zero last layers, paper §2; docs: Design, the agent)
 # ---------------------------------------------------------------------------------------------------
 def test_loss_coefficients_are_the_spec_defaults():
     c = AgentConfig()
@@ -218,7 +219,7 @@ def test_agent_update_reports_priorities_and_weighted_loss():
         for i in range(B):
             p = sum(RHO ** t * (2 * abs(REWARDS[t][i]) + (REWARDS[t][i] + 2 if reviewer else 0)) for t in range(H))
             assert metrics["priority"][i].item() == pytest.approx(p, rel=1e-6)
-        # Weighted mean with the PER weights, scaled by 1/H (spec §2.3 step 4).
+        # Weighted mean with the PER weights, scaled by 1/H (paper §2; docs: Design, the agent step 4).
         wm2, heads2 = make_world(), make_heads()
         ref = losses_for(wm2, heads2, batch)
         expected = (batch.weights * ref.total.detach()).mean().item() / H
@@ -226,7 +227,7 @@ def test_agent_update_reports_priorities_and_weighted_loss():
 
 
 # ---------------------------------------------------------------------------------------------------
-# 3. Gradient isolation (spec §2.3 summary)
+# 3. Gradient isolation (paper §2; docs: Design, the agent summary)
 # ---------------------------------------------------------------------------------------------------
 def _grads(loss: torch.Tensor, module: torch.nn.Module) -> list[torch.Tensor]:
     ps = [p for p in module.parameters() if p.requires_grad]
@@ -352,7 +353,7 @@ def test_agent_update_applies_ema_only_every_update_freq_steps():
 
 
 # ---------------------------------------------------------------------------------------------------
-# 5. Policy sampling (spec §2.2)
+# 5. Policy sampling (paper §2; docs: Design, the agent)
 # ---------------------------------------------------------------------------------------------------
 def test_grid_policy_returns_exact_one_hots():
     heads = make_heads()
@@ -394,7 +395,7 @@ def test_continuous_policy_bounds_and_noise_clip():
 
 
 # ---------------------------------------------------------------------------------------------------
-# 6. Planner (spec §2.5)
+# 6. Planner (paper §2; docs: Design, the agent)
 # ---------------------------------------------------------------------------------------------------
 def settings(**kw) -> PlanSettings:
     base = dict(horizon=3, iterations=4, num_samples=64, num_elites=8, num_policy_trajectories=4,
@@ -713,47 +714,6 @@ def test_fast_tanh_reaches_the_heads_and_learns_like_tanh():
         assert fast[key] == pytest.approx(full[key], rel=0.05), key
 
 
-def _filled_buffer(device_priorities: bool):
-    from drago.agent.buffer import EpisodeReplay
-
-    L = 20
-    buf = EpisodeReplay(200, OBS, ACT, H, L, device="cpu", device_priorities=device_priorities)
-    rng = np.random.default_rng(0)
-    for _ in range(6):
-        buf.add_episode(rng.random((L + 1, OBS)), rng.random((L, ACT)), rng.random(L))
-    return buf
-
-
-def test_device_priorities_sample_and_update_like_the_host_tree():
-    """The accelerator path (priorities kept on the device) run on the CPU: the same batches, weights
-    and stored priorities as the host sum tree, and checkpoints that load into either."""
-    host, device = _filled_buffer(False), _filled_buffer(True)
-    assert device.device_priorities and not host.device_priorities
-    rh, rd = np.random.default_rng(1), np.random.default_rng(1)
-    for k in range(30):
-        bh, bd = host.sample(64, rh), device.sample(64, rd)
-        assert isinstance(bd.indices, torch.Tensor)
-        np.testing.assert_array_equal(bh.indices, bd.indices.numpy())
-        torch.testing.assert_close(bh.weights, bd.weights)
-        assert torch.equal(bh.next_obs, bd.next_obs) and torch.equal(bh.actions, bd.actions)
-        new = torch.rand(64) * 3  # duplicated indices: the last write wins on both paths
-        host.update_priorities(bh.indices, new)
-        device.update_priorities(bd.indices, new)
-        if k % 10 == 9:
-            for buf in (host, device):
-                buf.add_episode(np.ones((21, OBS)), np.ones((20, ACT)), np.ones(20))
-    every = np.arange(host.capacity)
-    np.testing.assert_allclose(device.priorities(every), host.priorities(every), rtol=1e-12)
-    assert device.max_priority == pytest.approx(host.max_priority, rel=1e-12)
-    assert isinstance(bd.concat(bd).indices, torch.Tensor)
-    for source, target in ((device, _filled_buffer(False)), (host, _filled_buffer(True))):
-        target.load_state_dict(source.state_dict())
-        np.testing.assert_allclose(target.priorities(every), source.priorities(every), rtol=1e-12)
-        assert target.max_priority == source.max_priority
-    with pytest.raises(RuntimeError, match="finite and non-negative"):
-        device.update_priorities(bd.indices, torch.full((64,), float("nan")))
-
-
 class _HostRead(AssertionError):
     pass
 
@@ -769,7 +729,7 @@ def no_host_reads(monkeypatch):
 
 
 def test_hot_path_never_reads_tensors_on_the_host(no_host_reads):
-    buf = _filled_buffer(True)
+    buf = filled_buffer(device_priorities=True, obs_dim=OBS, act_dim=ACT, horizon=H)
     rng = np.random.default_rng(0)
     wm, heads = make_world(), make_heads()
     continuous_wm, continuous_heads = make_world(act_dim=2, squash=False), make_heads(act_dim=2, discrete=False)

@@ -1,7 +1,7 @@
-"""The three baselines of spec §5: EWC, bounded replay and curiosity.
+"""The three baselines of paper §4: EWC, bounded replay and curiosity.
 
 The maths is checked on hand-made tensors against closed forms; each method then runs a full `smoke`
-sequence, and its task checkpoints are inspected (spec §3.10: carried state, no old heads).
+sequence, and its task checkpoints are inspected (paper §3.3; docs: Design, how a run flows: carried state, no old heads).
 """
 
 from __future__ import annotations
@@ -175,7 +175,7 @@ def test_fisher_is_mean_squared_batch_gradient_nonnegative_and_zero_where_the_lo
 
 
 def test_consistency_loss_matches_the_learner_update():
-    """The Fisher's loss is the consistency term of model_losses (spec §2.3), per sample."""
+    """The Fisher's loss is the consistency term of model_losses (paper §2; docs: Design, the agent), per sample."""
     model, batch = make_world(), make_batch(4)
     heads = TaskHeads(OBS, ACT, MLP, discrete=True)
     losses = model_losses(model, heads, batch.obs, batch.actions, batch.rewards, batch.next_obs, horizon=H, rho=0.5,
@@ -196,7 +196,7 @@ def offer_ids(buffer: ReservoirBuffer, ids: np.ndarray, task: int = 0) -> None:
 
 
 def test_reservoir_never_exceeds_budget_and_keeps_every_task():
-    capacity = 2163  # spec §2.1: floats of the grid VAE / 10 floats per transition
+    capacity = 2163  # paper §2; docs: Design, the agent: floats of the grid VAE / 10 floats per transition
     buffer = ReservoirBuffer(capacity, OBS, ACT, np.random.default_rng(0))
     for task in range(4):
         for chunk in np.array_split(np.arange(task * 5000, (task + 1) * 5000), 7):  # episodes of uneven size

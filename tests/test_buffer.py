@@ -1,4 +1,4 @@
-"""Behaviour tests for the sum tree and the prioritized episode replay (spec §2.4)."""
+"""Behaviour tests for the sum tree and the prioritized episode replay (paper §2; docs: Design, the agent)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from drago.agent.buffer import Batch, EpisodeReplay, SumTree
+from helpers import filled_buffer
 
 OBS_DIM, ACT_DIM = 3, 2
 
@@ -309,3 +310,34 @@ def test_bad_input_raises():
         buf.update_priorities(np.array([0, 1]), np.array([1.0]))
     with pytest.raises(ValueError):
         buf.update_priorities(np.array([0]), np.array([np.nan]))
+
+
+# ---------------------------------------------------------------- host and device priorities
+def test_device_priorities_sample_and_update_like_the_host_tree():
+    """The accelerator path (priorities kept on the device) run on the CPU: the same batches, weights
+    and stored priorities as the host sum tree, and checkpoints that load into either."""
+    host, device = filled_buffer(device_priorities=False), filled_buffer(device_priorities=True)
+    assert device.device_priorities and not host.device_priorities
+    rh, rd = np.random.default_rng(1), np.random.default_rng(1)
+    for k in range(30):
+        bh, bd = host.sample(64, rh), device.sample(64, rd)
+        assert isinstance(bd.indices, torch.Tensor)
+        np.testing.assert_array_equal(bh.indices, bd.indices.numpy())
+        torch.testing.assert_close(bh.weights, bd.weights)
+        assert torch.equal(bh.next_obs, bd.next_obs) and torch.equal(bh.actions, bd.actions)
+        new = torch.rand(64) * 3  # duplicated indices: the last write wins on both paths
+        host.update_priorities(bh.indices, new)
+        device.update_priorities(bd.indices, new)
+        if k % 10 == 9:
+            for buf in (host, device):
+                buf.add_episode(np.ones((21, OBS_DIM)), np.ones((20, ACT_DIM)), np.ones(20))
+    every = np.arange(host.capacity)
+    np.testing.assert_allclose(device.priorities(every), host.priorities(every), rtol=1e-12)
+    assert device.max_priority == pytest.approx(host.max_priority, rel=1e-12)
+    assert isinstance(bd.concat(bd).indices, torch.Tensor)
+    for source, target in ((device, filled_buffer(device_priorities=False)), (host, filled_buffer(device_priorities=True))):
+        target.load_state_dict(source.state_dict())
+        np.testing.assert_allclose(target.priorities(every), source.priorities(every), rtol=1e-12)
+        assert target.max_priority == source.max_priority
+    with pytest.raises(RuntimeError, match="finite and non-negative"):
+        device.update_priorities(bd.indices, torch.full((64,), float("nan")))

@@ -32,7 +32,7 @@ def test_load_smoke_preset_layers_on_its_bases():
     assert cfg.agent.lr_schedule_steps == cfg.train.steps_per_task == 400
     assert cfg.env.tasks == ("room1", "room2", "room3", "room4")
     assert cfg.env.episode_length == 100
-    # Untouched defaults (spec §2.6).
+    # Untouched defaults (paper Appendix A.1).
     assert (cfg.agent.rho, cfg.agent.tau, cfg.agent.discount) == (0.5, 0.01, 0.99)
     assert cfg.method.name == "continual"
 
@@ -286,12 +286,12 @@ def test_interrupted_train_and_resume_name_the_run_to_continue(tmp_path, capsys,
 
 @pytest.mark.parametrize("force", [False, True])
 def test_interrupted_paper_cases_say_how_to_continue(force, tmp_path, capsys, monkeypatch):
-    from drago.train import transfer
+    from drago.train import run
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(transfer, "run_paper_cases", interrupted)
+    monkeypatch.setattr(run, "run_paper_cases", interrupted)
     argv = ["transfer", str(tmp_path), "--paper-cases", *(["--force"] if force else [])]
     assert cli.main(argv) == 130
     again = "again without --force" if force else "again"

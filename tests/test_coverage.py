@@ -204,12 +204,12 @@ def test_load_world_model_predicts_as_the_network(smoke_run):
     np.testing.assert_array_equal(predicted, direct.numpy())
     assert np.abs(predicted).max() <= 1.0  # the grid's dynamics end in tanh
     # Chunking does not change the answer (up to float rounding: matmul kernels depend on batch size).
-    from drago import api
-    old, api.PREDICT_CHUNK = api.PREDICT_CHUNK, 1000
+    from drago.eval import predictor as predictor_module
+    old, predictor_module.PREDICT_CHUNK = predictor_module.PREDICT_CHUNK, 1000
     try:
         np.testing.assert_allclose(predictor.predict(data.obs, data.actions), predicted, rtol=0, atol=1e-6)
     finally:
-        api.PREDICT_CHUNK = old
+        predictor_module.PREDICT_CHUNK = old
     # Lists and float64 are accepted.
     np.testing.assert_allclose(predictor.predict(data.obs[:2].astype(np.float64).tolist(), data.actions[:2]),
                                predicted[:2], rtol=0, atol=1e-6)

@@ -1,4 +1,4 @@
-"""DeepMind Control cheetah and walker (spec §1.2): rewards in closed form, sizes, action repeat,
+"""DeepMind Control cheetah and walker (paper Appendix C): rewards in closed form, sizes, action repeat,
 seeding, external episode length, the catalogue, a smoke training run and headless GIF recording."""
 
 from __future__ import annotations
@@ -29,14 +29,14 @@ from drago.config import ConfigError, load_config  # noqa: E402
 from drago.envs import (DMC_SEQUENCES, DMC_TASKS, DMC_TRANSFER_TASKS, available_tasks, env_spec,  # noqa: E402
                         make_env)
 from drago.envs.video import record_episode, save_video  # noqa: E402
-from drago.train.checkpoint import rng_state, set_rng_state  # noqa: E402
+from drago.seeding import rng_state, set_rng_state  # noqa: E402
 
 CHEETAH_TASKS = ["cheetah-run", "cheetah-jump", "cheetah-run-backwards", "cheetah-jump-and-run",
                  "cheetah-jump-and-run-backwards"]
 WALKER_TASKS = ["walker-stand", "walker-walk", "walker-run", "walker-walk-backwards", "walker-run-backwards"]
 
 
-# ---- the spec's formulas (§1.2.2-1.2.3), written independently of drago.envs.dmc ----------------------
+# ---- the spec's formulas (paper Appendix C), written independently of drago.envs.dmc ----------------------
 def tol(x: float, lo: float, hi: float, margin: float, sigmoid: str = "gaussian", v: float = 0.1) -> float:
     if lo <= x <= hi:
         return 1.0

@@ -1,4 +1,4 @@
-"""DRAGO's maths and its method object, against spec §3."""
+"""DRAGO's maths and its method object, against paper §3."""
 
 from __future__ import annotations
 
@@ -174,7 +174,7 @@ def test_task_checkpoint_carries_world_model_vae_and_threshold_only(drago_run):
     ckpt = load_checkpoint(drago_run / "checkpoints" / "task2_room2.pt", kind="task")
     assert set(ckpt["method"]) == {"vae", "threshold", "tasks_seen"}
     assert isinstance(ckpt["method"]["threshold"], float) and math.isfinite(ckpt["method"]["threshold"])
-    # No reviewer, optimizer or buffer crosses a task boundary (spec §3.10).
+    # No reviewer, optimizer or buffer crosses a task boundary (paper §3.3; docs: Design, how a run flows).
     assert not any(k.startswith(("reviewer", "optimizer", "buffer")) for k in ckpt)
 
 

@@ -1,4 +1,4 @@
-"""Behavioural tests of the four-rooms world against the spec's numbers (§1.1)."""
+"""Behavioural tests of the four-rooms world against the spec's numbers (paper Appendix C)."""
 
 from __future__ import annotations
 

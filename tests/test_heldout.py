@@ -32,7 +32,7 @@ from drago.eval.heldout import (  # noqa: E402
 )
 from drago.eval.report import build_report  # noqa: E402
 from drago.train import trainer as trainer_module  # noqa: E402
-from drago.train.trainer import task_seed  # noqa: E402
+from drago.seeding import task_seed  # noqa: E402
 
 TASKS = ("cheetah-run", "cheetah-jump")
 TINY_CHEETAH = ["env.domain=cheetah", "env.tasks=[cheetah-run,cheetah-jump]", "env.action_repeat=4",

@@ -53,7 +53,7 @@ def snapshot(root: Path) -> dict[str, bytes]:
 def reference(tmp_path_factory) -> Path:
     """A complete, uninterrupted study of two methods and one seed."""
     out = tmp_path_factory.mktemp("study") / "ref"
-    result = run_study(plan(out), echo=lambda line: None, in_process=True)
+    result = run_study(plan(out), echo=lambda line: None, in_process=cli.main)
     assert result.ok, result.summary_line()
     return out
 
@@ -138,7 +138,7 @@ def test_crash_then_the_same_command_finishes_with_the_logs_of_an_uninterrupted_
         reference, tmp_path, monkeypatch, capsys):
     out = tmp_path / "crashed"
     # The CLI's child processes run in this process here, so that the crash below reaches them.
-    monkeypatch.setattr(study, "_launch_process", study._launch_in_process)
+    monkeypatch.setattr(study, "_launch_process", lambda job: study._launch_in_process(job, cli.main))
     original = Continual.gradient_step
     calls = {"n": 0}
 
@@ -183,13 +183,13 @@ def test_crash_then_the_same_command_finishes_with_the_logs_of_an_uninterrupted_
 def test_runs_start_before_the_transfers_they_unlock(tmp_path, monkeypatch):
     started = []
 
-    def launch(job):
+    def launch(job, command):
         started.append(job.label)
         return study._Done(0)
 
     monkeypatch.setattr(study, "_launch_in_process", launch)
     p = plan(tmp_path / "order", methods=("continual", "scratch"), jobs=1)
-    run_study(p, echo=lambda line: None, in_process=True)
+    run_study(p, echo=lambda line: None, in_process=cli.main)
     assert started[:2] == ["continual seed1", "scratch seed1"]
     assert sorted(started[2:]) == sorted(j.label for j in p.transfers) and len(started) == 2 + 2 * len(CASES)
 
@@ -199,7 +199,7 @@ def test_a_job_that_exits_with_an_error_fails_the_study_and_points_at_its_log(tm
     p = plan(out, methods=("continual",))
     p.runs[0].argv = ["resume", str(out / "elsewhere"), "--no-progress"]  # exits 2: not a run directory
     lines = []
-    result = run_study(p, echo=lines.append, in_process=True)
+    result = run_study(p, echo=lines.append, in_process=cli.main)
     log = out / "logs" / "continual-seed1.log"
     assert not result.ok and result.failed == p.runs and p.runs[0].returncode == 2
     assert [j.status for j in p.transfers] == ["blocked"] * 4 and result.blocked == p.transfers
@@ -248,7 +248,7 @@ def test_a_folder_holding_something_else_is_a_one_line_error(reference, tmp_path
 def test_transfers_evaluated_every_n_episodes_and_kept_to_that_setting(tmp_path):
     out = tmp_path / "every2"
     result = run_study(plan(out, methods=("continual",), episodes=2, transfer_eval_every=2), echo=lambda line: None,
-                       in_process=True)
+                       in_process=cli.main)
     assert result.ok, result.summary_line()
     for case in CASES:
         evaluations = read_csv(out / "continual" / "seed1" / "transfer" / case / "eval.csv")

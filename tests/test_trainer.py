@@ -1,4 +1,4 @@
-"""End-to-end behaviour of the continual trainer on the `smoke` preset (spec §3.9-3.10).
+"""End-to-end behaviour of the continual trainer on the `smoke` preset (paper §3.3, Algorithm 1; paper §3.3; docs: Design, how a run flows).
 
 One smoke run (four tasks of 400 agent steps) takes a few seconds; the module shares one reference run.
 """
@@ -173,7 +173,7 @@ def test_evaluation_never_changes_what_a_run_learns(reference, tmp_path):
 
 def test_episodes_side_by_side_are_the_episodes_one_at_a_time():
     from drago.envs import make_env
-    from drago.train.trainer import run_episode, run_episodes
+    from drago.train.episodes import run_episode, run_episodes
 
     def fixed(seed):
         return np.random.default_rng(seed).integers(3, size=30)
@@ -196,7 +196,7 @@ def test_episodes_side_by_side_are_the_episodes_one_at_a_time():
 
 
 # ---------------------------------------------------------------------------------------------------
-# Chaining the world model from task to task (spec §3.10)
+# Chaining the world model from task to task (paper §3.3; docs: Design, how a run flows)
 # ---------------------------------------------------------------------------------------------------
 def _probe(base: type) -> type:
     class Probe(base):

@@ -1,4 +1,4 @@
-"""`drago transfer`: a test task learned from the world model of a run's stage K (spec §4.2-4.3).
+"""`drago transfer`: a test task learned from the world model of a run's stage K (paper §4.4).
 
 Sources are tiny `smoke` runs; transfers last one to three episodes of 100 steps.
 """
@@ -101,7 +101,7 @@ def test_transfer_writes_a_run_directory_with_learning_curves(drago_transfer, so
 
 def test_test_tasks_use_sparse_reward_and_no_seed_phase(drago_transfer, sources):
     rows = read_csv(drago_transfer / "eval.csv")
-    # The sparse optimum of room1to2 is 88.0 (spec §1.1.4); the dense one would be 266.5.
+    # The sparse optimum of room1to2 is 88.0 (paper Appendix C); the dense one would be 266.5.
     assert float(rows[0]["optimal_return"]) == 88.0 == task_optimum("minigrid", "room1to2", False)
     # Updates start with the first episode (the source run's first two episodes were a seed phase).
     assert read_csv(drago_transfer / "train.csv")[0]["learner_total_loss"] != ""
@@ -145,7 +145,7 @@ def test_without_a_reviewer_total_env_steps_equal_learner_env_steps(sources, tmp
 
 
 # ---------------------------------------------------------------------------------------------------
-# What the test task starts from (spec §3.10: the world model, VAE and threshold; heads fresh)
+# What the test task starts from (paper §3.3; docs: Design, how a run flows: the world model, VAE and threshold; heads fresh)
 # ---------------------------------------------------------------------------------------------------
 class StartProbe(Drago):
     """DRAGO that records, per task, the state it begins with, before any update."""
@@ -338,7 +338,7 @@ def test_transfer_errors_are_one_line(sources, drago_transfer, tmp_path, capsys,
 
 
 # ---------------------------------------------------------------------------------------------------
-# DeepMind Control test tasks of Table 1 (spec §1.2.5): X2Y tasks start after a pre-rollout
+# DeepMind Control test tasks of Table 1 (paper §4.4, Table 1): X2Y tasks start after a pre-rollout
 # ---------------------------------------------------------------------------------------------------
 needs_dmc = pytest.mark.skipif(importlib.util.find_spec("dm_control") is None,
                                reason="dm_control is not installed (pip install -e '.[dmc]')")
@@ -351,13 +351,14 @@ PRE_STEPS = 100  # the catalogue's pre_rollout_steps
 
 
 class EpisodeLog:
-    """Wraps the trainer's run_episodes: how each learner or evaluation episode started."""
+    """Wraps run_episodes, which plays every learner and evaluation episode: how each one started."""
 
     def __init__(self, monkeypatch):
+        from drago.train import episodes as episodes_module
         from drago.train import trainer as trainer_module
 
         self.records: list[dict] = []
-        original = trainer_module.run_episodes
+        original = episodes_module.run_episodes
 
         def run(envs, length, choose_actions, start=None):
             episodes = original(envs, length, choose_actions, start)
@@ -366,14 +367,15 @@ class EpisodeLog:
                                      "elapsed": env.elapsed_steps, "observations": len(episode.obs)})
             return episodes
 
-        monkeypatch.setattr(trainer_module, "run_episodes", run)
+        monkeypatch.setattr(episodes_module, "run_episodes", run)  # learner episodes, through run_episode
+        monkeypatch.setattr(trainer_module, "run_episodes", run)  # evaluations
 
 
 def manual_pre_rollout(env, ckpt: dict, steps: int = PRE_STEPS):
     """Reset, then the checkpoint's learner in eval mode, written out from the spec: (plain reset, result)."""
     from drago.agent.agent import Agent
     from drago.envs import env_spec
-    from drago.train.trainer import build_world_model
+    from drago.agent.networks import build_world_model
 
     obs, _ = env.reset()
     plain = obs.copy()
@@ -402,7 +404,7 @@ def cheetah_source(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def jump2run(cheetah_source) -> dict:
     """jump2run after stage 2, three learner episodes (DRAGO's reviewer on), every episode start logged."""
-    from drago.train.transfer import PreRollout
+    from drago.train.pre_rollout import PreRollout
 
     calls = {"n": 0}
     original = PreRollout.__call__
@@ -453,7 +455,7 @@ def test_x2y_episodes_start_after_a_pre_rollout_that_is_not_counted(jump2run, ch
 
     # The first observations are what a pre-rollout written out by hand gives with the same seeds.
     from drago.envs import make_env
-    from drago.train.trainer import task_seed
+    from drago.seeding import task_seed
 
     ckpt = load_checkpoint(cheetah_source / "checkpoints" / "task2_cheetah-jump.pt", kind="task")
     env = make_env("cheetah", "cheetah-run", action_repeat=4)
@@ -478,7 +480,7 @@ def test_reset_test_tasks_have_no_pre_rollout(cheetah_source, tmp_path, monkeypa
     assert cfg.transfer.pre_rollout_checkpoint is None
     assert [(r["pre_rollout"], r["elapsed"]) for r in log.records] == [(False, 20)] * 3
     from drago.envs import make_env
-    from drago.train.trainer import task_seed
+    from drago.seeding import task_seed
 
     env = make_env("cheetah", "cheetah-jump-and-run", action_repeat=4)
     env.reset(seed=task_seed(1, 0, 2))
@@ -528,9 +530,9 @@ def test_dmc_paper_cases_follow_table_1(cheetah_source, tmp_path):
 @needs_dmc
 @pytest.mark.parametrize("planning", ["source", "code"])
 def test_pre_rollout_planning(cheetah_source, planning, monkeypatch):
-    """source: the learner's own end-of-task horizon and std floor; code: the official quirk (spec §1.2.5)."""
+    """source: the learner's own end-of-task horizon and std floor; code: the official quirk (paper §4.4, Table 1)."""
     from drago.envs import make_env
-    from drago.train.transfer import PreRollout, load_learner
+    from drago.train.pre_rollout import PreRollout, load_learner
 
     path = cheetah_source / "checkpoints" / "task2_cheetah-jump.pt"
     ckpt = load_checkpoint(path, kind="task")

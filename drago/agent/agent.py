@@ -64,7 +64,7 @@ class Agent:
         self.model_optimizer = torch.optim.Adam(
             [*self.heads.reward.parameters(), *self.heads.q.parameters()], lr=cfg.lr)
         self.policy_optimizer = torch.optim.Adam(self.heads.policy.parameters(), lr=cfg.lr)
-        self.std_floor = cfg.std_schedule_start  # CEM std floor, advanced by updates only (spec §2.5)
+        self.std_floor = cfg.std_schedule_start  # CEM std floor, advanced by updates only (paper §2; docs: Design, the agent)
         self._warm_mean: torch.Tensor | None = None
         self.device = device
         # Optional torch.compile: the update's loss functions (their backward is compiled with them) and
@@ -127,7 +127,7 @@ class Agent:
     def update(self, batch: Batch, step: int, train_world_model: bool = True, policy_rows: int | None = None,
                curiosity_coef: float = 0.0, world_model_loss: Callable[[], torch.Tensor] | None = None,
                latents: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """One gradient step of spec §2.3 on a batch; returns metrics as tensors (no host sync).
+        """One gradient step of paper §2; docs: Design, the agent on a batch; returns metrics as tensors (no host sync).
 
         Args:
             batch: sequences from the replay buffer, rewards already final (relabelled if needed).

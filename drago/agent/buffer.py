@@ -1,4 +1,4 @@
-"""Prioritized episode replay buffer (spec §2.4).
+"""Prioritized episode replay buffer (paper §2; docs: Design, the agent).
 
 The buffer stores fixed-length episodes and samples (H+1)-long sequences
 with prioritized experience replay. On the CPU, priorities live in a
@@ -13,6 +13,7 @@ the host, indices and weights back).
 from __future__ import annotations
 
 import dataclasses
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,7 +22,7 @@ import torch
 
 ArrayLike = np.ndarray | torch.Tensor
 
-__all__ = ["SumTree", "DevicePriorities", "Batch", "EpisodeReplay"]
+__all__ = ["Batch", "DevicePriorities", "EpisodeReplay", "HostPriorities", "Priorities", "SumTree"]
 
 
 class SumTree:
@@ -149,29 +150,157 @@ class SumTree:
         self._max = float(state["max"])
 
 
-class DevicePriorities:
-    """PER leaf values as a dense float64 tensor on the buffer's device.
+class Priorities(ABC):
+    """PER priorities of a buffer's transitions, behind one small interface with a host and a device form.
 
-    The same contract as :class:`SumTree` (leaf values, stratified prefix-sum
-    search that never returns a zero-valued leaf, last write wins for a
-    duplicated leaf) without a host round trip: a draw is one cumulative sum
-    over the leaves plus a binary search, both on the device, which is cheap
-    there even at a million leaves. Nothing here reads a value on the host.
+    A raw priority ``p`` is stored as ``(p + 1e-6) ** alpha``; new transitions get the largest raw
+    priority seen so far; the last ``horizon`` steps of each episode keep priority 0, so every sampled
+    start has its whole (H+1)-long sequence inside one episode.
 
     Args:
-        capacity: Number of leaves.
-        device: Where the values live.
+        capacity: Number of transitions.
+        episode_length: L.
+        horizon: H.
+        alpha: PER priority exponent.
     """
 
-    def __init__(self, capacity: int, device: torch.device) -> None:
-        if capacity < 1:
-            raise ValueError(f"capacity must be >= 1, got {capacity}")
-        self.capacity = int(capacity)
+    PRIORITY_EPS = 1e-6
+
+    def __init__(self, capacity: int, episode_length: int, horizon: int, alpha: float) -> None:
+        self.capacity, self.episode_length, self.horizon, self.alpha = capacity, episode_length, horizon, alpha
+
+    @abstractmethod
+    def add_episode(self, start: int) -> None:
+        """Give the episode stored from flat index ``start`` the insertion priority."""
+
+    @abstractmethod
+    def draw(self, batch_size: int, rng: np.random.Generator, size: int,
+             beta: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | torch.Tensor]:
+        """A stratified draw of ``batch_size`` starts among ``size`` stored transitions.
+
+        Returns:
+            (starts as a long tensor on the device, normalised importance weights, the indices to write
+            priorities back to: numpy on the host, a device tensor on the device).
+        """
+
+    @abstractmethod
+    def update(self, indices: ArrayLike, priorities: ArrayLike) -> None:
+        """Write back raw priorities of sampled starts; starts in an episode's last H steps are ignored."""
+
+    @abstractmethod
+    def values(self, indices: ArrayLike) -> np.ndarray:
+        """The stored values ``(p + 1e-6) ** alpha``."""
+
+    @property
+    @abstractmethod
+    def max_priority(self) -> float:
+        """Raw priority assigned to newly inserted transitions."""
+
+    @abstractmethod
+    def state_dict(self) -> dict[str, Any]:
+        """``{"tree": ..., "max_priority": float}``."""
+
+    @abstractmethod
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what either form's :meth:`state_dict` saved (a run may resume on another device)."""
+
+    def _sampleable(self, idx: ArrayLike) -> ArrayLike:
+        return (idx % self.episode_length) < self.episode_length - self.horizon
+
+
+class HostPriorities(Priorities):
+    """Priorities in a host :class:`SumTree`: a draw and a write-back cost O(B log N) (the CPU default)."""
+
+    def __init__(self, capacity: int, episode_length: int, horizon: int, alpha: float,
+                 device: torch.device) -> None:
+        super().__init__(capacity, episode_length, horizon, alpha)
+        self.device = device
+        self._tree = SumTree(capacity)
+        self._max_priority = 1.0
+
+    @property
+    def max_priority(self) -> float:
+        return self._max_priority
+
+    def add_episode(self, start: int) -> None:
+        L = self.episode_length
+        prio = np.full(L, self._max_priority**self.alpha, dtype=np.float64)
+        prio[L - self.horizon :] = 0.0
+        self._tree.update(np.arange(start, start + L), prio)
+
+    def draw(self, batch_size: int, rng: np.random.Generator, size: int,
+             beta: float) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+        total = self._tree.total
+        segment = total / batch_size
+        u = (np.arange(batch_size) + rng.random(batch_size)) * segment
+        idx = self._tree.find(u)
+        probs = self._tree.values(idx) / total
+        weights = (size * probs) ** (-beta)
+        weights /= weights.max()
+        return (torch.as_tensor(idx, dtype=torch.long, device=self.device),
+                torch.as_tensor(weights, dtype=torch.float32, device=self.device), idx)
+
+    def update(self, indices: ArrayLike, priorities: ArrayLike) -> None:
+        if isinstance(indices, torch.Tensor):
+            indices = indices.detach().cpu().numpy()
+        if isinstance(priorities, torch.Tensor):
+            priorities = priorities.detach().to(torch.float64).cpu().numpy()
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        p = np.asarray(priorities, dtype=np.float64).reshape(-1)
+        if idx.shape != p.shape:
+            raise ValueError(f"indices {idx.shape} and priorities {p.shape} differ in shape")
+        if not np.all(np.isfinite(p)) or np.any(p < 0):
+            raise ValueError("priorities must be finite and non-negative")
+        keep = self._sampleable(idx)
+        idx, p = idx[keep], p[keep] + self.PRIORITY_EPS
+        if idx.size == 0:
+            return
+        self._tree.update(idx, p**self.alpha)
+        self._max_priority = max(self._max_priority, float(p.max()))
+
+    def values(self, indices: ArrayLike) -> np.ndarray:
+        if isinstance(indices, torch.Tensor):
+            indices = indices.detach().cpu().numpy()
+        return self._tree.values(np.asarray(indices, dtype=np.int64))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"tree": self._tree.state_dict(), "max_priority": float(self._max_priority)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        tree = state["tree"]
+        if "leaves" in tree:  # saved with device priorities
+            self._tree = SumTree(self.capacity)
+            self._tree.update(np.arange(self.capacity), _leaves_of(tree))
+        else:
+            self._tree.load_state_dict(tree)
+        self._max_priority = float(state["max_priority"])
+
+
+class DevicePriorities(Priorities):
+    """Priorities as a dense float64 tensor on the buffer's device (the default off the CPU).
+
+    The next batch depends on the priorities the last update computed; a host tree would make every
+    gradient step wait for the device twice (priorities to the host, indices and weights back). Here a
+    draw is one cumulative sum over the leaves plus a binary search, both on the device, which is cheap
+    there even at a million leaves, and nothing reads a value on the host. The contract is the host
+    tree's: a stratified draw never returns a zero-valued leaf, and the last write wins for a duplicated
+    index.
+    """
+
+    def __init__(self, capacity: int, episode_length: int, horizon: int, alpha: float,
+                 device: torch.device) -> None:
+        super().__init__(capacity, episode_length, horizon, alpha)
+        self.device = device
         # One slot past the leaves receives the writes to drop (duplicates, ignored indices).
         self._values = torch.zeros(self.capacity + 1, dtype=torch.float64, device=device)
+        # A device scalar, never read in the hot loop.
+        self._max = torch.ones((), dtype=torch.float64, device=device)
 
-    def update(self, indices: torch.Tensor, values: torch.Tensor, keep: torch.Tensor | None = None) -> None:
-        """Set leaf values; with duplicated indices the last occurrence wins; ``keep`` masks writes out."""
+    @property
+    def max_priority(self) -> float:
+        return float(self._max)
+
+    def _write(self, indices: torch.Tensor, values: torch.Tensor, keep: torch.Tensor | None = None) -> None:
         idx = indices.reshape(-1)
         vals = values.reshape(-1).to(torch.float64)
         if idx.numel() == 0:
@@ -184,35 +313,60 @@ class DevicePriorities:
         # Every kept index is now unique, so the write is deterministic; the rest land in the spare slot.
         self._values[torch.where(last, ordered, self.capacity)] = vals[order]
 
-    def values(self, indices: torch.Tensor) -> torch.Tensor:
-        return self._values[indices]
-
-    def leaves(self) -> torch.Tensor:
+    def _leaves(self) -> torch.Tensor:
         return self._values[: self.capacity]
 
-    def stratified(self, uniforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Draw one leaf in each of ``n`` equal segments of the total mass; returns (indices, probabilities).
+    def add_episode(self, start: int) -> None:
+        L = self.episode_length
+        prio = (self._max**self.alpha).expand(L).clone()
+        prio[L - self.horizon :] = 0.0
+        self._write(torch.arange(start, start + L, device=self.device), prio)
 
-        Args:
-            uniforms: (n,) float64 numbers in [0, 1) on the device: the position inside each segment.
-        """
-        n = uniforms.shape[0]
-        cdf = torch.cumsum(self.leaves(), 0)
+    def draw(self, batch_size: int, rng: np.random.Generator, size: int,
+             beta: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        # The same uniforms as the host form, copied without waiting for queued device work.
+        uniforms = torch.from_numpy(rng.random(batch_size))
+        if self.device.type == "cuda":
+            uniforms = uniforms.pin_memory()
+        uniforms = uniforms.to(self.device, non_blocking=True)
+        cdf = torch.cumsum(self._leaves(), 0)
         total = cdf[-1]
-        u = (torch.arange(n, dtype=torch.float64, device=cdf.device) + uniforms) * (total / n)
+        u = (torch.arange(batch_size, dtype=torch.float64, device=self.device) + uniforms) * (total / batch_size)
         # Strictly below the total, so the search always lands on a leaf with a positive value.
         u = torch.minimum(u, torch.nextafter(total, torch.zeros_like(total)))
         idx = torch.searchsorted(cdf, u, right=True)
-        return idx, self._values[idx] / total
+        weights = (size * (self._values[idx] / total)) ** (-beta)
+        return idx, (weights / weights.max()).to(torch.float32), idx
+
+    def update(self, indices: ArrayLike, priorities: ArrayLike) -> None:
+        """Without a host read: masks instead of filtering, and an asynchronous check."""
+        idx = torch.as_tensor(indices, dtype=torch.long, device=self.device).reshape(-1)
+        p = torch.as_tensor(priorities, device=self.device).detach().to(torch.float64).reshape(-1)
+        if idx.shape != p.shape:
+            raise ValueError(f"indices {tuple(idx.shape)} and priorities {tuple(p.shape)} differ in shape")
+        if idx.numel() == 0:
+            return
+        # Raises at once on the CPU; on a GPU a failure surfaces at a later kernel launch.
+        torch._assert_async(torch.all(torch.isfinite(p) & (p >= 0)), "priorities must be finite and non-negative")
+        keep = self._sampleable(idx)
+        p = p + self.PRIORITY_EPS
+        self._write(idx, p**self.alpha, keep)
+        self._max = torch.maximum(self._max, torch.where(keep, p, 0.0).max())
+
+    def values(self, indices: ArrayLike) -> np.ndarray:
+        return self._values[torch.as_tensor(indices, dtype=torch.long, device=self.device)].cpu().numpy()
 
     def state_dict(self) -> dict[str, Any]:
-        return {"capacity": self.capacity, "leaves": self.leaves().detach().cpu().clone()}
+        return {"tree": {"capacity": self.capacity, "leaves": self._leaves().detach().cpu().clone()},
+                "max_priority": float(self._max)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if int(state["capacity"]) != self.capacity:
-            raise ValueError(f"priority capacity mismatch: state {state['capacity']}, buffer {self.capacity}")
+        tree = state["tree"]
+        if int(tree["capacity"]) != self.capacity:
+            raise ValueError(f"priority capacity mismatch: state {tree['capacity']}, buffer {self.capacity}")
         self._values.zero_()
-        self._values[: self.capacity] = torch.as_tensor(_leaves_of(state), dtype=torch.float64)
+        self._values[: self.capacity] = torch.as_tensor(_leaves_of(tree), dtype=torch.float64)
+        self._max = torch.tensor(float(state["max_priority"]), dtype=torch.float64, device=self.device)
 
 
 def _leaves_of(state: dict[str, Any]) -> np.ndarray:
@@ -284,7 +438,7 @@ class Batch:
 
 
 class EpisodeReplay:
-    """Prioritized replay of fixed-length episodes (spec §2.4).
+    """Prioritized replay of fixed-length episodes (paper §2; docs: Design, the agent).
 
     Transition ``i`` is stored at flat index ``i`` (episode slot ``i // L``,
     step ``i % L``); s_L of each episode is kept in a separate per-slot array.
@@ -293,7 +447,7 @@ class EpisodeReplay:
     one episode. Whole episodes are overwritten FIFO once the buffer is full.
 
     Sampling is stratified PER with replacement (also when full); TD-MPC
-    samples without replacement once full, which the spec lists as a quirk.
+    samples without replacement once full, a quirk of the official code (docs: Design, paper and code).
 
     Args:
         capacity: Capacity in transitions, rounded down to whole episodes.
@@ -305,10 +459,8 @@ class EpisodeReplay:
         beta: PER importance-weight exponent.
         device: Torch device for the stored tensors and returned batches.
         device_priorities: keep priorities on ``device`` (:class:`DevicePriorities`)
-            instead of a host :class:`SumTree`; None: on any device but the CPU.
+            instead of in a host sum tree (:class:`HostPriorities`); None: on any device but the CPU.
     """
-
-    PRIORITY_EPS = 1e-6
 
     def __init__(
         self,
@@ -354,14 +506,8 @@ class EpisodeReplay:
         self._rewards = torch.zeros(self.capacity, dtype=torch.float32, device=self.device)
         if device_priorities is None:
             device_priorities = self.device.type != "cpu"
-        self._tree: SumTree | DevicePriorities
-        if device_priorities:
-            self._tree = DevicePriorities(self.capacity, self.device)
-            # raw (pre-alpha) priority given to new transitions; a device scalar, never read in the hot loop
-            self._max_priority: float | torch.Tensor = torch.ones((), dtype=torch.float64, device=self.device)
-        else:
-            self._tree = SumTree(self.capacity)
-            self._max_priority = 1.0
+        kind = DevicePriorities if device_priorities else HostPriorities
+        self._priorities: Priorities = kind(self.capacity, self.episode_length, self.horizon, self.alpha, self.device)
         self._next_slot = 0
         self._num_episodes = 0
         self._steps = torch.arange(self.horizon + 1, device=self.device)
@@ -383,12 +529,12 @@ class EpisodeReplay:
     @property
     def device_priorities(self) -> bool:
         """Whether priorities live on the device (:class:`DevicePriorities`)."""
-        return isinstance(self._tree, DevicePriorities)
+        return isinstance(self._priorities, DevicePriorities)
 
     @property
     def max_priority(self) -> float:
         """Raw priority assigned to newly inserted transitions."""
-        return float(self._max_priority)
+        return self._priorities.max_priority
 
     # ---------------------------------------------------------------- insert
     def _as_tensor(self, x: ArrayLike, name: str, shape: tuple[int, ...]) -> torch.Tensor:
@@ -427,14 +573,7 @@ class EpisodeReplay:
         self._actions[start : start + L] = act_t
         self._rewards[start : start + L] = rew_t
 
-        if self.device_priorities:
-            prio = (self._max_priority**self.alpha).expand(L).clone()
-            prio[L - self.horizon :] = 0.0
-            self._tree.update(torch.arange(start, start + L, device=self.device), prio)
-        else:
-            prio = np.full(L, self._max_priority**self.alpha, dtype=np.float64)
-            prio[L - self.horizon :] = 0.0
-            self._tree.update(np.arange(start, start + L), prio)
+        self._priorities.add_episode(start)
 
         self._next_slot = (slot + 1) % self.max_episodes
         self._num_episodes = min(self._num_episodes + 1, self.max_episodes)
@@ -452,27 +591,7 @@ class EpisodeReplay:
         """
         if self._num_episodes == 0:
             raise ValueError("cannot sample from an empty buffer")
-        if self.device_priorities:
-            # The same uniforms as the host path, copied without waiting for queued device work.
-            uniforms = torch.from_numpy(rng.random(batch_size))
-            if self.device.type == "cuda":
-                uniforms = uniforms.pin_memory()
-            idx, probs = self._tree.stratified(uniforms.to(self.device, non_blocking=True))
-            weights = (len(self) * probs) ** (-self.beta)
-            weights = (weights / weights.max()).to(torch.float32)
-            starts = idx
-        else:
-            total = self._tree.total
-            segment = total / batch_size
-            u = (np.arange(batch_size) + rng.random(batch_size)) * segment
-            idx = self._tree.find(u)
-
-            probs = self._tree.values(idx) / total
-            weights = (len(self) * probs) ** (-self.beta)
-            weights /= weights.max()
-            weights = torch.as_tensor(weights, dtype=torch.float32, device=self.device)
-            starts = torch.as_tensor(idx, dtype=torch.long, device=self.device)
-
+        starts, weights, idx = self._priorities.draw(batch_size, rng, len(self), self.beta)
         L = self.episode_length
         seq = starts.unsqueeze(0) + self._steps.unsqueeze(1)  # (H+1, B): t = 0..H
         nxt = seq + 1
@@ -524,47 +643,11 @@ class EpisodeReplay:
             indices: Start indices from :attr:`Batch.indices`, shape (n,).
             priorities: Non-negative raw priorities, shape (n,).
         """
-        if self.device_priorities:
-            self._update_device_priorities(indices, priorities)
-            return
-        if isinstance(indices, torch.Tensor):
-            indices = indices.detach().cpu().numpy()
-        if isinstance(priorities, torch.Tensor):
-            priorities = priorities.detach().to(torch.float64).cpu().numpy()
-        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-        p = np.asarray(priorities, dtype=np.float64).reshape(-1)
-        if idx.shape != p.shape:
-            raise ValueError(f"indices {idx.shape} and priorities {p.shape} differ in shape")
-        if not np.all(np.isfinite(p)) or np.any(p < 0):
-            raise ValueError("priorities must be finite and non-negative")
-        keep = (idx % self.episode_length) < self.episode_length - self.horizon
-        idx, p = idx[keep], p[keep] + self.PRIORITY_EPS
-        if idx.size == 0:
-            return
-        self._tree.update(idx, p**self.alpha)
-        self._max_priority = max(self._max_priority, float(p.max()))
-
-    def _update_device_priorities(self, indices: ArrayLike, priorities: ArrayLike) -> None:
-        """:meth:`update_priorities` without a host read: masks instead of filtering, an async check."""
-        idx = torch.as_tensor(indices, dtype=torch.long, device=self.device).reshape(-1)
-        p = torch.as_tensor(priorities, device=self.device).detach().to(torch.float64).reshape(-1)
-        if idx.shape != p.shape:
-            raise ValueError(f"indices {tuple(idx.shape)} and priorities {tuple(p.shape)} differ in shape")
-        if idx.numel() == 0:
-            return
-        # Raises at once on the CPU; on a GPU a failure surfaces at a later kernel launch.
-        torch._assert_async(torch.all(torch.isfinite(p) & (p >= 0)), "priorities must be finite and non-negative")
-        keep = (idx % self.episode_length) < self.episode_length - self.horizon
-        p = p + self.PRIORITY_EPS
-        self._tree.update(idx, p**self.alpha, keep)
-        self._max_priority = torch.maximum(self._max_priority, torch.where(keep, p, 0.0).max())
+        self._priorities.update(indices, priorities)
 
     def priorities(self, indices: ArrayLike) -> np.ndarray:
-        """Return the stored tree values ``p ** alpha`` for ``indices``."""
-        if self.device_priorities:
-            idx = torch.as_tensor(indices, dtype=torch.long, device=self.device)
-            return self._tree.values(idx).cpu().numpy()
-        return self._tree.values(np.asarray(indices, dtype=np.int64))
+        """Return the stored values ``(p + 1e-6) ** alpha`` for ``indices``."""
+        return self._priorities.values(indices)
 
     # ------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict[str, Any]:
@@ -581,8 +664,7 @@ class EpisodeReplay:
             "last_obs": self._last_obs.detach().cpu().clone(),
             "actions": self._actions.detach().cpu().clone(),
             "rewards": self._rewards.detach().cpu().clone(),
-            "tree": self._tree.state_dict(),
-            "max_priority": float(self._max_priority),
+            **self._priorities.state_dict(),
             "next_slot": self._next_slot,
             "num_episodes": self._num_episodes,
         }
@@ -603,16 +685,6 @@ class EpisodeReplay:
         self._last_obs.copy_(state["last_obs"])
         self._actions.copy_(state["actions"])
         self._rewards.copy_(state["rewards"])
-        tree = state["tree"]
-        if self.device_priorities:
-            self._tree.load_state_dict(tree)
-            self._max_priority = torch.tensor(float(state["max_priority"]), dtype=torch.float64, device=self.device)
-        elif "leaves" in tree:  # saved with device priorities
-            self._tree = SumTree(self.capacity)
-            self._tree.update(np.arange(self.capacity), _leaves_of(tree))
-            self._max_priority = float(state["max_priority"])
-        else:
-            self._tree.load_state_dict(tree)
-            self._max_priority = float(state["max_priority"])
+        self._priorities.load_state_dict(state)
         self._next_slot = int(state["next_slot"])
         self._num_episodes = int(state["num_episodes"])

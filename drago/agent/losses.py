@@ -1,4 +1,4 @@
-"""The TD-MPC training losses of spec §2.3 as functions of modules and a batch.
+"""The TD-MPC training losses of paper §2; docs: Design, the agent as functions of modules and a batch.
 
 Only the dynamics rollout is sequential; the reward head, the critics and the TD targets see detached
 inputs, so each of them is evaluated in one batched call over all H steps.
@@ -46,7 +46,7 @@ def rho_weights(rho: float, steps: int, like: torch.Tensor) -> torch.Tensor:
 
 
 def rollout(world_model: WorldModel, obs: torch.Tensor, actions: torch.Tensor, horizon: int) -> torch.Tensor:
-    """(H+1, B, n_z) latents z_0 = h(s_0), z_{t+1} = d(z_t, a_t): the open-loop model rollout of §2.3.
+    """(H+1, B, n_z) latents z_0 = h(s_0), z_{t+1} = d(z_t, a_t): the open-loop model rollout of paper §2; docs: Design, the agent.
 
     Built with a graph when gradients are enabled, so the consistency loss can train the dynamics.
     """
@@ -63,7 +63,7 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
                  policy_std: float, consistency_coef: float, reward_coef: float, value_coef: float,
                  first_step_qr_only: bool, train_world_model: bool, reviewer_priority: bool = False,
                  curiosity_coef: float = 0.0, latents: torch.Tensor | None = None) -> ModelLosses:
-    """Consistency, reward and value losses of one agent on one batch (spec §2.3 steps 1-3).
+    """Consistency, reward and value losses of one agent on one batch (paper §2; docs: Design, the agent steps 1-3).
 
     Args:
         obs: (B, n) start observations s_0.
@@ -73,7 +73,7 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
             gradient is built for a loss that would be zero (DRAGO's learner in tasks >= 2).
         reviewer_priority: use the reviewer's priority r + 2 + |TD errors| instead of |TD errors|.
         curiosity_coef: c in the TD target's reward r + c * e_t, with e_t the open-loop prediction error
-            of the current model (spec §2.3; the curiosity baseline). The reward head still fits r.
+            of the current model (paper §2; docs: Design, the agent; the curiosity baseline). The reward head still fits r.
         latents: the :func:`rollout` of these rows when the caller already has it (with a graph if
             ``train_world_model``): DRAGO rolls the world model once over reviewer and learner rows and
             hands each update its rows, since the learner's update does not change the world model.
@@ -134,7 +134,7 @@ def model_losses(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, a
 
 
 def policy_loss(heads: TaskHeads, latents: torch.Tensor, rho: float, policy_std: float) -> torch.Tensor:
-    """-sum_t rho^t mean(min(Q1, Q2)(z_t, pi(z_t))) over the stored latents z_0..z_H (spec §2.3 step 6).
+    """-sum_t rho^t mean(min(Q1, Q2)(z_t, pi(z_t))) over the stored latents z_0..z_H (paper §2; docs: Design, the agent step 6).
 
     The critics are evaluated but must not be updated by this loss: differentiate it with respect to
     the policy parameters only.

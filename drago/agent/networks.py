@@ -1,4 +1,4 @@
-"""Networks of the TD-MPC agent (spec §2.1): the shared world model and the task-specific heads.
+"""Networks of the TD-MPC agent (paper §2; docs: Design, the agent): the shared world model and the task-specific heads.
 
 The world model and the heads are separate modules on purpose. A continual method carries the
 :class:`WorldModel` from task to task and builds fresh :class:`TaskHeads` for every task; DRAGO's
@@ -14,7 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from drago.config import PRECISIONS
+from drago.config import PRECISIONS, Config
+from drago.envs import EnvSpec
 
 # The dynamics output is clamped before squashing, as in the official code.
 DYNAMICS_CLAMP = 100.0
@@ -139,7 +140,7 @@ class WorldModel(nn.Module):
         return obs
 
     def raw_next(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Pre-clamp, pre-squash output: what synthetic rehearsal distils (spec §3.3)."""
+        """Pre-clamp, pre-squash output: what synthetic rehearsal distils (paper §3.1)."""
         return self.dynamics(torch.cat((z, action), dim=-1))
 
     def squash_output(self, raw: torch.Tensor) -> torch.Tensor:
@@ -211,7 +212,7 @@ class TaskHeads(nn.Module):
     """Reward, policy and twin Q of one agent for one task, plus the EMA target of Q.
 
     Inputs to the reward head and the critics are detached from the world model, so only the
-    consistency loss and rehearsal can change the dynamics (spec §2.3, gradient isolation).
+    consistency loss and rehearsal can change the dynamics (paper §2; docs: Design, the agent, gradient isolation).
     """
 
     def __init__(self, obs_dim: int, action_dim: int, mlp_dim: int, discrete: bool, fast_tanh: bool = False):
@@ -233,7 +234,7 @@ class TaskHeads(nn.Module):
         return net(torch.cat((z.detach(), action), dim=-1))
 
     def act(self, z: torch.Tensor, std: float, deterministic: bool = False) -> torch.Tensor:
-        """Policy action (spec §2.2): hard Gumbel one-hot for the grid, clipped Gaussian around tanh(mu)."""
+        """Policy action (paper §2; docs: Design, the agent): hard Gumbel one-hot for the grid, clipped Gaussian around tanh(mu)."""
         out = self.policy(z)
         if self.discrete:
             if deterministic:
@@ -252,6 +253,13 @@ class TaskHeads(nn.Module):
     def ema_update(self, tau: float) -> None:
         for p, p_target in zip(self.q.parameters(), self.q_target.parameters()):
             p_target.lerp_(p, tau)
+
+
+def build_world_model(cfg: Config, spec: EnvSpec, device: torch.device | str = "cpu") -> WorldModel:
+    """The world model a run of ``cfg`` on a domain of ``spec`` trains (and its checkpoints hold)."""
+    # The grid's observations lie in [-1, 1]: its dynamics end in tanh (paper Appendix A).
+    return WorldModel(spec.obs_dim, spec.action_dim, cfg.agent.mlp_dim, cfg.agent.use_crelu,
+                      squash=spec.discrete).to(device)
 
 
 def linear_schedule(start: float, end: float, duration: int, step: int) -> float:

@@ -1,4 +1,4 @@
-"""Model-predictive control with the cross-entropy method (spec §2.5).
+"""Model-predictive control with the cross-entropy method (paper §2; docs: Design, the agent).
 
 Two variants share the trajectory evaluation: a Gaussian CEM with momentum and warm start for
 continuous actions, and a categorical CEM over one-hot action sequences for the grid.
@@ -160,7 +160,7 @@ def plan_discrete(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor, 
     by side: their planning problems run as one batch and the result is (n_a,) or (E, n_a). With E = 1 the
     draws and the arithmetic are those of a single problem, so batching never changes a training run.
 
-    The categorical mean starts uniform (1/|A|; the official code's 1/h is a bug, spec §7.2.18).
+    The categorical mean starts uniform (1/|A|; the official code's 1/h is a bug, docs: Design, departures from the official code).
     Exploration comes from CEM sampling and the stochastic elite choice; there is no action noise.
     """
     obs, single = _as_problems(obs)
@@ -192,7 +192,7 @@ def plan_continuous(world_model: WorldModel, heads: TaskHeads, obs: torch.Tensor
     the shape ``warm_mean`` is expected in.
 
     The executed action is clipped to [-1, 1] after exploration noise, so the buffer stores what the
-    simulator executes (the official code stores unclipped actions, spec §7.2.22).
+    simulator executes (the official code stores unclipped actions, docs: Design, departures from the official code).
     """
     obs, single = _as_problems(obs)
     problems, n_a = len(obs), world_model.action_dim

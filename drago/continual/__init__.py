@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from drago.config import Config, ConfigError
 from drago.continual.base import ContinualMethod, TaskState
 from drago.continual.curiosity import Curiosity
 from drago.continual.drago import Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal
@@ -28,9 +29,24 @@ def available_methods() -> list[str]:
 
 
 def get_method(name: str) -> type[ContinualMethod]:
+    """The method class of a name.
+
+    Raises:
+        ConfigError: an unknown name (one line listing the valid ones).
+    """
     if name not in METHODS:
-        raise ValueError(f"unknown method '{name}'; valid methods: {', '.join(METHODS)}")
+        raise ConfigError(f"unknown method '{name}'; valid methods: {', '.join(METHODS)}")
     return METHODS[name]
+
+
+def check_method(cfg: Config) -> Config:
+    """``cfg``, once its method is known to exist (:func:`drago.config.validate` checks everything else).
+
+    Raises:
+        ConfigError: an unknown method.
+    """
+    get_method(cfg.method.name)
+    return cfg
 
 
 def build_method(cfg, spec, device) -> ContinualMethod:
@@ -42,4 +58,4 @@ def build_method(cfg, spec, device) -> ContinualMethod:
 
 
 __all__ = ["METHODS", "ContinualMethod", "LearnerOnly", "TaskState", "available_methods", "build_method",
-           "get_method"]
+           "check_method", "get_method"]

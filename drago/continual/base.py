@@ -30,7 +30,7 @@ def buffer_capacity(steps: int, episode_length: int) -> int:
 
 @dataclass(frozen=True)
 class Budget:
-    """How many agent steps a task may take (spec §3.12, row 14).
+    """How many agent steps a task may take (docs: Design, paper and code: budgets).
 
     Shared (the official code's accounting, the default): learner and reviewer steps count together
     against ``steps_per_task``, so once a reviewer runs the learner gets half the steps. Separate: the
@@ -74,7 +74,7 @@ class Budget:
 
 @dataclass
 class TaskState:
-    """Everything that lives for one task of the sequence (spec §3.10: fresh at every task).
+    """Everything that lives for one task of the sequence (paper §3.3; docs: Design, how a run flows: fresh at every task).
 
     The world model is the exception: the method decides whether it arrives fresh or carried over.
     """

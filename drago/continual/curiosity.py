@@ -1,7 +1,7 @@
-"""Curiosity + continual TD-MPC (spec §5, the paper's appendix baseline).
+"""Curiosity + continual TD-MPC (paper §4, the paper's appendix baseline).
 
 The learner's TD target gets the bonus ``c * e_t``, with ``e_t`` the open-loop multi-step prediction
-error of the current world model (spec §2.3), so the agent is drawn to transitions its carried-over
+error of the current world model (paper §2; docs: Design, the agent), so the agent is drawn to transitions its carried-over
 model predicts badly. As in the official code the bonus enters the TD target only: the reward head
 still fits the environment reward, which is what the planner's reward predictions must be.
 """

@@ -1,4 +1,4 @@
-"""Elastic weight consolidation on the world model (spec §5, the paper's EWC baseline).
+"""Elastic weight consolidation on the world model (paper §4, the paper's EWC baseline).
 
 At the end of every task the diagonal Fisher of the world model's consistency loss is estimated on that
 task's data and added to the Fisher accumulated over the earlier tasks; the world model it ended with
@@ -41,7 +41,7 @@ def trainable_parameters(world_model: nn.Module) -> dict[str, nn.Parameter]:
 
 def consistency_loss(world_model: nn.Module, obs: torch.Tensor, actions: torch.Tensor, next_obs: torch.Tensor,
                      horizon: int, rho: float) -> torch.Tensor:
-    """Per-sample multi-step consistency loss of spec §2.3: ``sum_t rho^t mse(z_{t+1}, h(s_{t+1}))``.
+    """Per-sample multi-step consistency loss of paper §2; docs: Design, the agent: ``sum_t rho^t mse(z_{t+1}, h(s_{t+1}))``.
 
     The rollout is open loop from ``z_0 = h(s_0)``, exactly as in the learner's update, so the Fisher
     measures the curvature of the loss the world model is actually trained on.

@@ -1,4 +1,4 @@
-"""DRAGO's building blocks as modules and pure functions (spec §3.2-3.8).
+"""DRAGO's building blocks as modules and pure functions (paper §3.1; docs: Design, paper and code).
 
 * :class:`VAE` over (latent observation, action) and its loss;
 * :func:`rehearsal_loss`: distillation of the frozen previous world model on generated pairs;
@@ -42,14 +42,14 @@ class VAE(nn.Module):
 
     @torch.no_grad()
     def sample(self, n: int) -> torch.Tensor:
-        """Decoder means at u ~ N(0, I): no output noise (spec §3.2)."""
+        """Decoder means at u ~ N(0, I): no output noise (paper §3.1)."""
         device = self.decoder[0].weight.device
         return self.decoder(torch.randn(n, self.latent_dim, device=device))
 
 
 def vae_loss(reconstruction: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, log_var: torch.Tensor,
              recon_coef: float, kl_coef: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(total, reconstruction, KL); both terms are means over batch and dimensions (spec §3.2)."""
+    """(total, reconstruction, KL); both terms are means over batch and dimensions (paper §3.1)."""
     recon = (reconstruction - x).pow(2).mean()
     kl = -0.5 * (1 + log_var - mu.pow(2) - log_var.exp()).mean()
     return recon_coef * recon + kl_coef * kl, recon, kl
@@ -84,7 +84,7 @@ def intrinsic_reward(old_world_model: WorldModel, world_model: WorldModel, obs: 
                      actions: torch.Tensor, next_obs: torch.Tensor, threshold: float, cost_coef: float,
                      variant: str = "code") -> IntrinsicReward:
     """The reviewer's reward for transitions (s, a, s'): high where the old model is right and the
-    current one is wrong (spec §3.5). Any leading batch shape.
+    current one is wrong (paper §3.2). Any leading batch shape.
 
     Args:
         threshold: theta, the previous task's prediction-score EMA (``code`` variant only).
@@ -108,10 +108,10 @@ def intrinsic_reward(old_world_model: WorldModel, world_model: WorldModel, obs: 
 
 
 class GridCounts:
-    """Visit counts over the 27 x 27 x 4 grid states; bonus 1/sqrt(N + 0.99999) - 1/99999 (spec §3.8).
+    """Visit counts over the 27 x 27 x 4 grid states; bonus 1/sqrt(N + 0.99999) - 1/99999 (docs: Design, paper and code).
 
     Observations are mapped to cells by rounding: the official code truncates, which files even exact
-    observations of x, y in {2, 3, 6, 9} one cell too low (spec §7.2.16).
+    observations of x, y in {2, 3, 6, 9} one cell too low (docs: Design, departures from the official code).
     """
 
     SIZE = 27
@@ -140,7 +140,7 @@ class GridCounts:
 
 
 class ContinuousCounts:
-    """Classifier pseudo-counts over continuous states for reviewer planning (spec §3.8, DMC), bounded.
+    """Classifier pseudo-counts over continuous states for reviewer planning (docs: Design, paper and code, DMC), bounded.
 
     As in the official code's ``ContPseudoCounts``: a one-hidden-layer classifier learns, one Adam step
     per visited state, to tell visited states (label 1) from N(0, I) samples (label 0), and the state's

@@ -6,7 +6,7 @@ from drago.continual.base import ContinualMethod
 
 
 class Continual(ContinualMethod):
-    """Continual TD-MPC (spec §5): world model carried over, trained on the task reward only."""
+    """Continual TD-MPC (paper §4): world model carried over, trained on the task reward only."""
 
 
 class Scratch(ContinualMethod):
@@ -18,7 +18,7 @@ class Scratch(ContinualMethod):
 
 
 class LearnerOnly(ContinualMethod):
-    """Any method reduced to its plain learner: a test task with ``transfer.learner_only`` (spec §4.2).
+    """Any method reduced to its plain learner: a test task with ``transfer.learner_only`` (paper §4.4).
 
     The reviewer, rehearsal, VAE updates, penalties and bonuses of the run's method are off; only its
     choice of a carried or fresh world model is kept (so a ``scratch`` run still learns from scratch).

@@ -1,8 +1,8 @@
-"""Bounded replay across tasks (spec §5, the paper's "replay-based MBRL with a bounded buffer").
+"""Bounded replay across tasks (paper §4, the paper's "replay-based MBRL with a bounded buffer").
 
 A reservoir of single transitions (s, a, s') is kept across tasks, capped at the memory of DRAGO's
-generative model: spec §2.1 gives ~2,163 grid transitions (21,638 VAE floats / 10 floats per
-transition), the default of ``method.replay_capacity``. Every transition a task collected is offered to
+generative model: the grid VAE's 21,638 parameters hold ~2,163 grid transitions at 10 floats per
+transition (docs: Methods, replay), the default of ``method.replay_capacity``. Every transition a task collected is offered to
 the reservoir when the task ends, so during task k it holds a uniform sample of tasks 1..k-1 and the
 world-model objective mixes those old rows with the task's own sequences.
 """
@@ -21,7 +21,7 @@ from drago.agent.losses import prediction_error
 from drago.config import Config
 from drago.continual.base import ContinualMethod, TaskState
 from drago.envs import EnvSpec
-from drago.train.checkpoint import rng_state, set_rng_state
+from drago.seeding import rng_state, set_rng_state
 
 
 class ReservoirBuffer:
@@ -33,8 +33,7 @@ class ReservoirBuffer:
     task keeps a share proportional to the data it offered, however long ago it ended.
 
     Each slot also records the index of the task that offered it (bookkeeping only; 9 floats of
-    (s, a, s') plus this tag per grid transition stay within the 10 numbers per transition of the
-    spec's budget).
+    (s, a, s') plus this tag per grid transition stay within the budget of 10 numbers per transition).
 
     Args:
         capacity: the most transitions ever held.

@@ -1,13 +1,13 @@
-"""DeepMind Control cheetah and walker behind a gymnasium API (spec §1.2).
+"""DeepMind Control cheetah and walker behind a gymnasium API (paper Appendix C).
 
 Every task of a domain runs on the stock dm_control XML and the stock initial-state distribution (the
-official custom XMLs differ from stock only visually, spec §1.2.4); a task only chooses the reward,
+official custom XMLs differ from stock only visually, docs: Environments, DeepMind Control); a task only chooses the reward,
 computed by the pure functions below from the physics after each control step.
 
 :class:`DMCEnv` differs from the official wrapper stack in two deliberate ways:
 
 * the episode length is managed outside dm_control: the inner environment has an infinite time limit
-  (the official code passes a step count as seconds, so it never times out either, spec §1.2.1), and
+  (the official code passes a step count as seconds, so it never times out either, paper Appendix C), and
   ``max_episode_steps`` only sets ``truncated``; stepping past it is allowed, for pre-rollouts;
 * seeding: every reset draws the dm_control task's ``RandomState`` seed from ``env.np_random``, so the
   initial state depends only on that generator. Restoring its state (as a resumed run does) replays
@@ -38,7 +38,7 @@ __all__ = ["DMC_DOMAINS", "DMCEnv", "DmcDomain", "cheetah_jump_and_run_reward", 
 
 @dataclass(frozen=True)
 class DmcDomain:
-    """Fixed facts of a domain (spec §1.2.1 table) and the official code's defaults."""
+    """Fixed facts of a domain (paper Appendix C table) and the official code's defaults."""
 
     obs_dim: int
     action_dim: int
@@ -94,7 +94,7 @@ except ImportError as err:  # pragma: no cover - exercised only without the extr
 
 
 # ------------------------------------------------------------------------------------------------
-# Rewards (spec §1.2.3): pure functions of the physics after a control step
+# Rewards (paper Appendix C): pure functions of the physics after a control step
 # ------------------------------------------------------------------------------------------------
 CHEETAH_RUN_SPEED = 10.0
 CHEETAH_JUMP_HEIGHT = 1.2

@@ -1,4 +1,4 @@
-"""The 27x27 four-rooms MiniGrid world of DRAGO (spec §1.1).
+"""The 27x27 four-rooms MiniGrid world of DRAGO (paper Appendix C).
 
 The map is fixed: outer walls, an inner wall cross at x=13 / y=13 with a
 plus-shaped five-cell opening at the centre, and 20 coloured blocks that are
@@ -114,7 +114,7 @@ def traversable_cells() -> list[tuple[int, int]]:
 
 
 def ascii_map() -> list[str]:
-    """The training layout as text, identical to the spec's render.
+    """The training layout as text, identical to the official code's render.
 
     Returns:
         27 rows of 27 characters: ``#`` wall, ``.`` free, ``B/R/P/Y`` blocks by
@@ -164,7 +164,7 @@ def next_state(pos: tuple[int, int], direction: int, action: int) -> tuple[tuple
 def grid_reward(
     prev_pos: tuple[int, int], pos: tuple[int, int], goal: tuple[int, int], dense: bool
 ) -> float:
-    """Reward for moving from ``prev_pos`` to ``pos`` (spec §1.1.3).
+    """Reward for moving from ``prev_pos`` to ``pos`` (paper Appendix C).
 
     Args:
         prev_pos: Agent cell before the step.

@@ -1,4 +1,4 @@
-"""Task catalogues: the four-rooms MiniGrid world (spec §1.1.4) and DeepMind Control (spec §1.2).
+"""Task catalogues: the four-rooms MiniGrid world (paper Appendix C) and DeepMind Control (paper Appendix C).
 
 Tasks are plain data. A grid task is a start cell, a goal cell and the reward type; the world itself
 lives in :mod:`drago.envs.fourrooms`. A DeepMind Control task names a reward family and its parameters;
@@ -81,7 +81,7 @@ def get_grid_task(name: str, dense: bool | None = None) -> GridTask:
 
 
 # ---------------------------------------------------------------------------------------------------
-# DeepMind Control: cheetah and walker (spec §1.2.3-1.2.6)
+# DeepMind Control: cheetah and walker (paper Appendix C)
 # ---------------------------------------------------------------------------------------------------
 
 #: Reward kinds of :class:`DmcTask`; the formulas live in :mod:`drago.envs.dmc`.
@@ -90,13 +90,13 @@ DMC_REWARD_KINDS = ("cheetah-run", "cheetah-jump", "cheetah-jump-and-run", "walk
 
 @dataclass(frozen=True)
 class DmcTask:
-    """One DeepMind Control task: a domain's stock physics with one reward (spec §1.2.3).
+    """One DeepMind Control task: a domain's stock physics with one reward (paper Appendix C).
 
     Every task of a domain shares the stock XML and the stock initial-state distribution; the custom
-    XMLs of the official code differ from stock only visually (spec §1.2.4).
+    XMLs of the official code differ from stock only visually (docs: Environments, DeepMind Control).
 
     Attributes:
-        name: Task id as in the spec and the official configs, e.g. ``"cheetah-run-backwards"``.
+        name: Task id as in the official configs, e.g. ``"cheetah-run-backwards"``.
         domain: ``"cheetah"`` or ``"walker"``.
         kind: Which reward family (see :data:`DMC_REWARD_KINDS`).
         speed: Target speed S in m/s (0: none; walker-stand).
@@ -115,7 +115,7 @@ class DmcTask:
 
     @property
     def reward(self) -> str:
-        """The per-control-step reward as a short closed form (spec §1.2.3)."""
+        """The per-control-step reward as a short closed form (paper Appendix C)."""
         s = f"{self.speed:g}"
         sign = "" if self.direction >= 0 else "-"
         if self.kind == "cheetah-run":
@@ -151,7 +151,7 @@ DMC_TASKS: dict[str, DmcTask] = {
     )
 }
 
-#: The continual sequences of the official configs (spec §1.2.6; the config's walker order is authoritative).
+#: The continual sequences of the official configs (paper Appendix C; the config's walker order is authoritative).
 DMC_SEQUENCES: dict[str, tuple[str, ...]] = {
     "cheetah": ("cheetah-run", "cheetah-jump", "cheetah-run-backwards"),
     "walker": ("walker-run", "walker-walk", "walker-walk-backwards", "walker-stand"),
@@ -160,7 +160,7 @@ DMC_SEQUENCES: dict[str, tuple[str, ...]] = {
 
 @dataclass(frozen=True)
 class DmcTransferTask:
-    """One test task of the paper's Table 1 (spec §1.2.5). Data only: the runner lives elsewhere.
+    """One test task of the paper's Table 1 (paper §4.4, Table 1). Data only: the runner lives elsewhere.
 
     Attributes:
         name: Short id, e.g. ``"jump2run"`` (the paper's "jump&run" is ``"jump-and-run"``).
@@ -171,7 +171,7 @@ class DmcTransferTask:
             episodes before the test episode starts; None: episodes start from a plain reset.
         after: The training task after which the world model is taken (its stage in the sequence is
             :attr:`stage`).
-        after_inferred: True where the paper does not say which stage and the spec infers it.
+        after_inferred: True where the paper does not say which stage and drago infers it from the sequence.
         pre_rollout_steps: Agent steps of the pre-rollout (the code's ``pre_rollout_steps=100``).
         paper_name: The name in the paper's table.
     """

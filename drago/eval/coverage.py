@@ -6,7 +6,7 @@ prediction comes from the world model exactly as the planner sees it. Two measur
 
 * exact-match accuracy: the prediction decoded to the nearest cell and heading
   (:func:`~drago.envs.fourrooms.decode_observation`) equals the true next state;
-* mean prediction score, ``-log(mean_dims (predicted - true)^2 + eps)`` (spec §4.4), the same quantity
+* mean prediction score, ``-log(mean_dims (predicted - true)^2 + eps)`` (paper §4.1), the same quantity
   as the training code's prediction score, higher is better.
 
 Evaluated for the world model after each task of a run, these show retention: a model that forgot
@@ -16,6 +16,7 @@ room 1 while learning room 4 loses accuracy in room 1.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -33,8 +34,8 @@ from drago.envs.fourrooms import (
     traversable_cells,
 )
 from drago.envs.tasks import get_grid_task
-from drago.train.checkpoint import task_checkpoint_path
-from drago.train.run import RunDirError, read_run_config
+from drago.train.rundir import RunCheckpoint, RunDirError, atomic_write_text
+from drago.train.rundir import run_checkpoints as _run_checkpoints
 
 __all__ = [
     "GROUPS",
@@ -47,7 +48,6 @@ __all__ = [
     "cell_scores",
     "coverage_of_run",
     "decode_batch",
-    "finished_task_checkpoints",
     "format_table",
     "grid_coverage",
     "grid_transitions",
@@ -114,15 +114,6 @@ class CoverageResult:
     score: np.ndarray
     predicted: np.ndarray
     rooms: dict[str, dict[str, float | int]]
-
-
-@dataclass(frozen=True)
-class RunCheckpoint:
-    """One task checkpoint of a run: stage = task index + 1."""
-
-    stage: int
-    task: str
-    path: Path
 
 
 def room_of(cell: tuple[int, int]) -> int | None:
@@ -217,7 +208,7 @@ def grid_coverage(predictor: Predictor) -> CoverageResult:
     """Exact-match accuracy and prediction score of a world model on every grid transition.
 
     Args:
-        predictor: Anything with ``predict(obs, action)`` as :class:`drago.api.WorldModelPredictor`.
+        predictor: Anything with ``predict(obs, action)`` as :class:`drago.eval.predictor.WorldModelPredictor`.
 
     Returns:
         A :class:`CoverageResult` with per-transition arrays (rows of :func:`grid_transitions`) and
@@ -245,32 +236,15 @@ def grid_coverage(predictor: Predictor) -> CoverageResult:
     return CoverageResult(correct=correct, score=score, predicted=predicted, rooms=rooms)
 
 
-def finished_task_checkpoints(run_dir: Path, cfg: Config) -> list[RunCheckpoint]:
-    """The task checkpoints a run has written so far, in stage order."""
-    found = [RunCheckpoint(stage=k, task=name, path=task_checkpoint_path(run_dir, cfg.env.tasks, k))
-             for k, name in enumerate(cfg.env.tasks, start=1)]
-    return [c for c in found if c.path.is_file()]
-
-
 def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
-    """The run's config and its finished tasks' checkpoints, in task order.
-
-    Only files are checked here (cheap), so a command given several runs can refuse a bad one
-    before evaluating any.
+    """The run's config and its finished tasks' checkpoints, in task order (files only: cheap).
 
     Raises:
         CoverageError: Not a run directory, a domain other than the grid, or no task finished yet.
         drago.config.ConfigError: The run's ``config.yaml`` is invalid.
     """
-    run_dir = Path(run_dir)
-    cfg = read_run_config(run_dir)
-    if cfg.env.domain != GRID_DOMAIN:
-        raise CoverageError(f"{run_dir} is a '{cfg.env.domain}' run; coverage is defined for the "
-                            f"'{GRID_DOMAIN}' grid only")
-    found = finished_task_checkpoints(run_dir, cfg)
-    if not found:
-        raise CoverageError(f"{run_dir} has no task checkpoint yet (the first task has not finished)")
-    return cfg, found
+    return _run_checkpoints(run_dir, CoverageError, lambda cfg: (
+        f"coverage is defined for the '{GRID_DOMAIN}' grid only" if cfg.env.domain != GRID_DOMAIN else None))
 
 
 def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, Any]]:
@@ -289,7 +263,7 @@ def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, 
         CoverageError: See :func:`run_checkpoints`.
         drago.train.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
     """
-    from drago.api import load_world_model
+    from drago.eval.predictor import load_world_model
 
     cfg, checkpoints = run_checkpoints(run_dir)
     rows: list[dict[str, Any]] = []
@@ -313,16 +287,12 @@ def write_coverage_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
 
 def write_rows_csv(rows: list[dict[str, Any]], columns: tuple[str, ...], path: str | Path) -> Path:
     """Write measurement rows to ``path`` atomically; floats as ``repr`` so the file reads back bit-exactly."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(columns), extrasaction="ignore")
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: repr(v) if isinstance(v, float) and math.isfinite(v) else v for k, v in row.items()})
-    tmp.replace(path)
-    return path
+    handle = io.StringIO(newline="")
+    writer = csv.DictWriter(handle, fieldnames=list(columns), extrasaction="ignore")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: repr(v) if isinstance(v, float) and math.isfinite(v) else v for k, v in row.items()})
+    return atomic_write_text(path, handle.getvalue())
 
 
 def format_table(rows: list[dict[str, Any]]) -> list[str]:
@@ -342,7 +312,7 @@ def format_table(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def cell_scores(score: np.ndarray) -> np.ndarray:
-    """Per-cell prediction score on the map: the mean over each cell's 4 headings x 3 actions (spec §4.4).
+    """Per-cell prediction score on the map: the mean over each cell's 4 headings x 3 actions (paper §4.1).
 
     Args:
         score: (N,) per-transition scores in the row order of :func:`grid_transitions`, e.g.

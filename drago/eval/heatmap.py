@@ -1,4 +1,4 @@
-"""Prediction-score heatmaps of grid world models: the paper's forgetting figure (spec §4.4).
+"""Prediction-score heatmaps of grid world models: the paper's forgetting figure (paper §4.1).
 
 Each panel is the 27x27 map coloured by the per-cell prediction score of one world model (the mean of
 ``-log(MSE + eps)`` over the cell's 4 headings x 3 actions, :func:`~drago.eval.coverage.cell_scores`),
@@ -18,7 +18,8 @@ import numpy as np
 
 from drago.envs.fourrooms import SIZE, is_traversable
 from drago.envs.tasks import GRID_TASKS
-from drago.eval.coverage import GRID_DOMAIN, CoverageError, RunCheckpoint, cell_scores, grid_coverage, run_checkpoints
+from drago.eval.coverage import GRID_DOMAIN, CoverageError, cell_scores, grid_coverage, run_checkpoints
+from drago.train.rundir import RunCheckpoint
 
 __all__ = ["StageMaps", "heatmap_png", "run_cell_scores"]
 
@@ -47,7 +48,7 @@ def run_cell_scores(run_dir: str | Path, device: str = "cpu") -> list[tuple[RunC
         CoverageError: Not a grid run, or no task finished yet (see :func:`run_checkpoints`).
         drago.train.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
     """
-    from drago.api import load_world_model
+    from drago.eval.predictor import load_world_model
 
     _, checkpoints = run_checkpoints(run_dir)
     out = []

@@ -21,122 +21,30 @@ forgets task 1 while learning task 3 has a growing error on task 1's set.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from drago.agent.losses import LOG_EPS
 from drago.config import Config
-from drago.eval.coverage import GRID_DOMAIN, RunCheckpoint, finished_task_checkpoints, write_rows_csv
-from drago.train.run import RunDirError, read_run_config
+from drago.eval.coverage import GRID_DOMAIN, write_rows_csv
+from drago.eval.predictor import load_world_model
+from drago.train.heldout_sets import HeldoutSet, load_heldout, record_heldout
+from drago.train.rundir import HELDOUT_FOLDER, RunCheckpoint, RunDirError, heldout_path, run_checkpoints
 
 __all__ = ["CSV_COLUMNS", "HELDOUT_FOLDER", "RETENTION_FILE", "HeldoutError", "HeldoutSet", "format_table",
-           "heldout_checkpoints", "heldout_path", "load_heldout", "record_heldout", "record_transitions",
+           "heldout_checkpoints", "heldout_path", "load_heldout", "record_heldout",
            "retention_matrix", "transition_errors", "write_retention_csv"]
 
-HELDOUT_FOLDER = "heldout"
 RETENTION_FILE = "retention.csv"
 # stage / stage_task: the world model (saved after that stage); task / task_stage: whose held-out set.
 CSV_COLUMNS: tuple[str, ...] = ("run", "method", "seed", "stage", "stage_task", "task_stage", "task", "error",
                                 "score", "n")
-# Seed purposes of drago.train.trainer.task_seed (0-3 are the training's own streams).
-ENV_SEED_PURPOSE = 4
-TORCH_SEED_PURPOSE = 5
 
 
 class HeldoutError(RunDirError):
     """A run the retention matrix cannot evaluate; the message is one line (the CLI prints it, exit 2)."""
-
-
-class HeldoutSet(NamedTuple):
-    """Transitions of one task's held-out set, float32, one row per transition."""
-
-    obs: np.ndarray
-    action: np.ndarray
-    next_obs: np.ndarray
-    reward: np.ndarray
-
-
-def heldout_path(run_dir: str | Path, stage: int, task: str) -> Path:
-    """``RUN_DIR/heldout/task<stage>_<task>.npz``; stage = task index + 1."""
-    return Path(run_dir) / HELDOUT_FOLDER / f"task{stage}_{task}.npz"
-
-
-def load_heldout(path: str | Path) -> HeldoutSet:
-    with np.load(path) as data:
-        return HeldoutSet(data["obs"], data["action"], data["next_obs"], data["reward"])
-
-
-def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> Path:
-    """Write ``arrays`` so that a crash leaves either no file or the complete one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def record_heldout(checkpoint: str | Path, out: str | Path, device: Any = "cpu") -> Path:
-    """Record the held-out set of a finished task from its task checkpoint and save it to ``out``.
-
-    The checkpoint's learner (its heads and world model, planning as at the end of its task) runs
-    :func:`record_transitions`; the trainer records the same set from the live learner, so both give
-    the same file.
-
-    Raises:
-        drago.train.checkpoint.CheckpointError: unusable checkpoint.
-    """
-    from drago.train.transfer import load_learner
-
-    saved = load_learner(checkpoint, device)
-    return record_transitions(saved.agent, saved.steps, saved.config, saved.task_index, out, device)
-
-
-def record_transitions(agent: Any, steps: int, cfg: Config, task_index: int, out: str | Path,
-                       device: Any = "cpu") -> Path:
-    """Record ``cfg.train.heldout_episodes`` eval-mode episodes of ``agent`` on task ``task_index`` of ``cfg``.
-
-    The episodes (of the run's episode length) run on a new env of the task reset with a seed of its
-    own, and the planner draws from a torch stream of its own, so nothing the training uses moves.
-
-    Args:
-        agent: the task's final learner (:class:`~drago.agent.agent.Agent`).
-        steps: the task's step counter at its end (the learner's planning-horizon schedule).
-        cfg: the run's config.
-        task_index: 0-based position of the task in ``cfg.env.tasks``.
-        out: the ``.npz`` file to write (atomically).
-        device: the agent's torch device.
-    """
-    from drago.envs import make_env
-    from drago.train.trainer import run_episode, task_seed
-    from drago.train.transfer import seeded_torch_rng
-
-    if cfg.train.heldout_episodes <= 0:
-        raise ValueError(f"train.heldout_episodes is {cfg.train.heldout_episodes}: no held-out episodes to record")
-    env = make_env(cfg.env.domain, cfg.env.tasks[task_index], cfg.env.dense_reward,
-                   action_repeat=cfg.env.action_repeat)
-    env.reset(seed=task_seed(cfg.train.seed, task_index, ENV_SEED_PURPOSE))
-    episodes = []
-    with seeded_torch_rng(task_seed(cfg.train.seed, task_index, TORCH_SEED_PURPOSE), device):
-        for _ in range(cfg.train.heldout_episodes):
-            episodes.append(run_episode(env, cfg.env.episode_length, lambda obs, t: agent.act(
-                obs, steps, eval_mode=True, first_step=t == 0)))
-    arrays = {"obs": np.concatenate([e.obs[:-1] for e in episodes]),
-              "action": np.concatenate([e.actions for e in episodes]),
-              "next_obs": np.concatenate([e.obs[1:] for e in episodes]),
-              "reward": np.concatenate([e.rewards for e in episodes])}
-    return _save_npz(Path(out), arrays)
 
 
 def heldout_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
@@ -146,15 +54,9 @@ def heldout_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint
         HeldoutError: not a run directory, a grid run, or no task finished yet.
         drago.config.ConfigError: the run's ``config.yaml`` is invalid.
     """
-    run_dir = Path(run_dir)
-    cfg = read_run_config(run_dir)
-    if cfg.env.domain == GRID_DOMAIN:
-        raise HeldoutError(f"{run_dir} is a '{GRID_DOMAIN}' run; held-out retention is for continuous states: "
-                           f"use `drago eval coverage` for the grid")
-    found = finished_task_checkpoints(run_dir, cfg)
-    if not found:
-        raise HeldoutError(f"{run_dir} has no task checkpoint yet (the first task has not finished)")
-    return cfg, found
+    return run_checkpoints(run_dir, HeldoutError, lambda cfg: (
+        "held-out retention is for continuous states: use `drago eval coverage` for the grid"
+        if cfg.env.domain == GRID_DOMAIN else None))
 
 
 def transition_errors(predicted: np.ndarray, next_obs: np.ndarray) -> np.ndarray:
@@ -180,8 +82,6 @@ def retention_matrix(run_dir: str | Path, device: str = "cpu", record_missing: b
         HeldoutError: see :func:`heldout_checkpoints`, or no held-out set at all.
         drago.train.checkpoint.CheckpointError: a corrupt or mismatched checkpoint.
     """
-    from drago.api import load_world_model
-
     run_dir = Path(run_dir)
     cfg, checkpoints = heldout_checkpoints(run_dir)
     sets: dict[int, tuple[str, HeldoutSet]] = {}

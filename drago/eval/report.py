@@ -17,7 +17,6 @@ import base64
 import csv
 import html
 import io
-import json
 import math
 import os
 from collections.abc import Iterable, Iterator, Sequence
@@ -40,8 +39,8 @@ from drago.eval.coverage import (
 )
 from drago.eval.metrics import continual_metrics, cw_forward_transfer
 from drago.eval.stats import summarize
-from drago.train.run import CONFIG_FILE, RunDirError, read_run_config
-from drago.train.transfer import TRANSFER_FOLDER, training_returns, transfer_summary
+from drago.train.rundir import CONFIG_FILE, SUMMARY_FILE, TRANSFER_FOLDER, RunDirError, read_run_config, read_summary
+from drago.train.transfer import training_returns, transfer_summary
 
 __all__ = ["ReportError", "build_report", "find_run_dirs", "find_transfer_dirs"]
 
@@ -50,7 +49,6 @@ REPORT_MD = "report.md"
 HEATMAP_PNG = "heatmap.png"
 CURVES_PNG = "curves.png"
 TRANSFER_PNG = "transfer-curves.png"
-SUMMARY_FILE = "summary.json"
 EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ("task", "env_step", "fraction_of_optimal")
 FRACTION_LABEL = "fraction of DP optimum"
@@ -155,20 +153,6 @@ class Run:
         return self.cfg.transfer.case or self.cfg.env.tasks[0], int(self.cfg.transfer.after or 0)
 
 
-def _read_summary(path: Path) -> dict[str, Any] | None:
-    file = path / SUMMARY_FILE
-    if not file.exists():
-        return None
-    try:
-        data = json.loads(file.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ReportError(f"{file} is not readable JSON ({err})") from None
-    if not isinstance(data, dict) or not isinstance(data.get("tasks"), list) or not all(
-            isinstance(t, dict) and "name" in t for t in data["tasks"]):
-        raise ReportError(f"{file} is not a drago run summary (no list of tasks with names)")
-    return data
-
-
 def _read_eval(path: Path, required: Sequence[str] = EVAL_COLUMNS) -> list[dict[str, str]]:
     file = path / EVAL_FILE
     if not file.exists():
@@ -200,7 +184,7 @@ def read_run(path: str | Path) -> Run:
         raise ReportError(f"{path / CONFIG_FILE} is not readable ({err.strerror or err})") from None
     # DeepMind Control tasks have no known optimum, so their eval.csv has no fraction_of_optimal.
     required = EVAL_COLUMNS if cfg.env.domain == GRID_DOMAIN else EVAL_COLUMNS[:2]
-    return Run(path=path, cfg=cfg, summary=_read_summary(path), eval_rows=_read_eval(path, required))
+    return Run(path=path, cfg=cfg, summary=read_summary(path, ReportError), eval_rows=_read_eval(path, required))
 
 
 def _number(value: Any) -> float:
@@ -700,14 +684,14 @@ def _gaps(groups: dict[str, list[Run]], tasks: list[str], findings: _Findings) -
 
 
 # ---------------------------------------------------------------------------------------------------
-# transfers (spec §4.2-4.3): test tasks learned from a run's stage-K world model
+# transfers (paper §4.4): test tasks learned from a run's stage-K world model
 # ---------------------------------------------------------------------------------------------------
 Case = tuple[str, int]
 
 _FEW_SHOT = (
     ("equal_episodes", "transfer-episodes", "Transfer: few-shot score at equal learner episodes",
      "Evaluation return on each test case (a test task learned from the world model a run of the method saved "
-     "after stage K, spec §4.2-4.3) after the same number of learner episodes (the transfer's few-shot "
+     "after stage K, paper §4.4) after the same number of learner episodes (the transfer's few-shot "
      "episodes, 20 by default; the paper's reading), as a fraction of the task's DP optimum where it has "
      "one (grid) and as raw return: mean ± std [95% bootstrap CI of the mean] over seeds; a single seed "
      "shows its value alone. Seeds counts the transfers that have reached the score."),

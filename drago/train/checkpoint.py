@@ -4,22 +4,24 @@ Two kinds live in a run's ``checkpoints/`` folder:
 
 * ``task<k>_<name>.pt``: written at the end of task k. It holds the world model, the method's carried
   state (VAE, threshold, ...) and, separately, the learner's heads. The next task reads only the
-  world model and the carried state (spec §3.10, ``load_policy=false``).
+  world model and the carried state (paper §3.3; docs: Design, how a run flows, ``load_policy=false``).
 * ``resume.pt``: the latest periodic snapshot of the task in progress, with everything needed to go on
   (optimizers, buffer, RNG states, log positions).
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
-from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
+
+from drago.agent.networks import WorldModel, build_world_model
+from drago.config import Config, ConfigError
+from drago.envs import EnvSpec, env_spec
+from drago.train.rundir import atomic_write
+from drago.seeding import seeded_torch_rng
 
 FORMAT = "drago-checkpoint"
 VERSION = 1
@@ -31,36 +33,12 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any], kind: str, domain: str) -> Path:
-    """Write ``payload`` so that a crash at any moment leaves either the old file or the new one.
-
-    The data goes to a temporary file in the same folder, is flushed to disk, and then replaces the
-    target with an atomic rename.
-    """
+    """Write ``payload`` durably and atomically (:func:`~drago.train.rundir.atomic_write`): a crash at
+    any moment leaves either the old file or the new one."""
     if kind not in KINDS:
         raise ValueError(f"unknown checkpoint kind '{kind}'; valid kinds: {', '.join(KINDS)}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     data = {"format": FORMAT, "version": VERSION, "kind": kind, "domain": domain, **payload}
-    # A process killed mid-write leaves its temporary file behind; the next save clears it.
-    for stale in path.parent.glob(f".{path.name}.*.tmp"):
-        stale.unlink(missing_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            torch.save(data, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp creates owner-only files; checkpoints are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
-    return path
+    return atomic_write(path, lambda handle: torch.save(data, handle), durable=True)
 
 
 def load_checkpoint(path: str | Path, kind: str | None = None, domain: str | None = None,
@@ -95,48 +73,61 @@ def load_checkpoint(path: str | Path, kind: str | None = None, domain: str | Non
     return data
 
 
-def rng_state(rng: np.random.Generator) -> dict[str, Any]:
-    """A numpy generator's state as tensors and ints only, so checkpoints load with weights_only."""
-    return _to_safe(rng.bit_generator.state)
+@dataclass
+class TaskCheckpoint:
+    """A task checkpoint, loaded: its raw contents, the config of the run that wrote it, and its world model.
 
-
-def set_rng_state(rng: np.random.Generator, state: dict[str, Any]) -> None:
-    rng.bit_generator.state = _from_safe(state)
-
-
-def _to_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _to_safe(v) for k, v in value.items()}
-    if isinstance(value, int) and not isinstance(value, bool) and not -(2**63) <= value < 2**63:
-        return {"__bigint__": str(value)}
-    return value
-
-
-def _from_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        if set(value) == {"__bigint__"}:
-            return int(value["__bigint__"])
-        return {k: _from_safe(v) for k, v in value.items()}
-    return value
-
-
-def task_checkpoint_path(run_dir: str | Path, tasks: tuple[str, ...] | list[str], stage: int) -> Path:
-    """Where a run saves its state after its ``stage``-th task (1-based): ``checkpoints/task<k>_<name>.pt``."""
-    return Path(run_dir) / "checkpoints" / f"task{stage}_{tasks[stage - 1]}.pt"
-
-
-@contextlib.contextmanager
-def seeded_torch_rng(seed: int, device: torch.device | str = "cpu") -> Iterator[None]:
-    """Run a block on torch's global generator seeded with ``seed``, then restore the previous state.
-
-    The planner draws from the global generator; this gives a block (an evaluation, a pre-rollout, a
-    held-out recording) its own reproducible stream without moving the one training continues with.
+    Attributes:
+        path: the file.
+        data: everything it stores (see the module docstring).
+        config: the config of the run that wrote it.
+        spec: its domain's sizes.
+        world_model: the world model after the task, rebuilt from ``config`` and loaded strictly.
     """
-    device = torch.device(device)
-    cuda = [device.index if device.index is not None else torch.cuda.current_device()] if device.type == "cuda" else []
-    with torch.random.fork_rng(devices=cuda):
-        torch.default_generator.manual_seed(int(seed))
-        for index in cuda:
-            with torch.cuda.device(index):
-                torch.cuda.manual_seed(int(seed))
-        yield
+
+    path: Path
+    data: dict[str, Any]
+    config: Config
+    spec: EnvSpec
+    world_model: WorldModel
+
+    @property
+    def task(self) -> str | None:
+        return self.data.get("task")
+
+    @property
+    def task_index(self) -> int | None:
+        index = self.data.get("task_index")
+        return None if index is None else int(index)
+
+
+def load_task_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> TaskCheckpoint:
+    """Load a task checkpoint and rebuild its world model: the one loader behind the public API, transfers,
+    pre-rollouts and every evaluation.
+
+    Building the network draws initial weights from torch's global generator; that happens on a stream of
+    its own, so loading a checkpoint in the middle of a run (a pre-rollout's learner, a held-out recording
+    after a resume) leaves the training's stream where it was.
+
+    Raises:
+        CheckpointError: missing, corrupt or non-task checkpoint, a config or domain it lacks, or weights
+            that do not fit the network its config describes (one-line message).
+    """
+    path, device = Path(path), torch.device(device)
+    data = load_checkpoint(path, kind="task", map_location=device)
+    try:
+        cfg = Config.from_dict(data["config"])
+        spec = env_spec(data["domain"])
+    except (KeyError, TypeError) as err:
+        raise CheckpointError(f"{path} lacks a usable config or domain ({err})") from None
+    except (ConfigError, ValueError) as err:
+        raise CheckpointError(f"{path}: {err}") from None
+    with seeded_torch_rng(0, device):
+        world_model = build_world_model(cfg, spec, device)
+    try:
+        world_model.load_state_dict(data["world_model"], strict=True)
+    except (KeyError, RuntimeError) as err:
+        # torch's message spans many lines (one per tensor); the first names the problem.
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"{path}: world model does not match its config ({first})") from None
+    return TaskCheckpoint(path=path, data=data, config=cfg, spec=spec, world_model=world_model)

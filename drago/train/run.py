@@ -1,27 +1,25 @@
-"""Build a trainer from a config (new run) or from a run directory (resume): the composition root."""
+"""Start or continue runs and transfers: the composition root that hands the trainer what it calls."""
 
 from __future__ import annotations
 
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import torch
-import yaml
 
 from drago.config import Config, ConfigError
 from drago.continual import build_method
 from drago.envs import env_spec
 from drago.train.checkpoint import load_checkpoint
+from drago.train.heldout_sets import HeldoutRecorder
 from drago.train.logger import RunLogger
+from drago.train.pre_rollout import PreRollout
 from drago.train.resources import keep_freed_memory
+from drago.train.rundir import CONFIG_FILE, RunDirError, config_diffs, is_run_dir, read_run_config, write_run_config
 from drago.train.trainer import Trainer
-
-CONFIG_FILE = "config.yaml"
-
-
-class RunDirError(ValueError):
-    """A run directory that cannot be used as asked; the message is one line."""
+from drago.train.transfer import describe, paper_transfer_plan, plan_transfer, transfer_summary
 
 
 def default_run_dir(cfg: Config) -> Path:
@@ -56,26 +54,10 @@ def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = Tr
             raise RunDirError(f"{run_dir} is not empty and not a drago run; refusing to delete it, choose another --out")
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    write_run_config(run_dir, cfg)
     trainer = _build(cfg, run_dir, device, progress)
     trainer.logger = RunLogger(run_dir, cfg.train.tensorboard)
     return trainer
-
-
-def read_run_config(run_dir: Path) -> Config:
-    """The resolved config a run directory was started with."""
-    config_path = run_dir / CONFIG_FILE
-    if not run_dir.exists():
-        raise RunDirError(f"run directory {run_dir} does not exist")
-    if not config_path.is_file():
-        raise RunDirError(f"{run_dir} is not a drago run directory (no {CONFIG_FILE})")
-    try:
-        data = yaml.safe_load(config_path.read_text())
-    except yaml.YAMLError as err:
-        raise RunDirError(f"{config_path} is not valid YAML ({str(err).splitlines()[0]})") from None
-    if not isinstance(data, dict):
-        raise RunDirError(f"{config_path} does not hold a drago config")
-    return Config.from_dict(data)
 
 
 def resume(run_dir: Path, progress: bool = True) -> Trainer:
@@ -102,5 +84,85 @@ def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> 
     # Methods may build networks of their own (DRAGO's VAE): seed them like everything else.
     torch.manual_seed(cfg.train.seed)
     method = build_method(cfg, spec, device)
-    trainer = Trainer(cfg, run_dir, method, spec, None, device, progress=progress)
+    trainer = Trainer(cfg, run_dir, method, spec, None, device, progress=progress,
+                      episode_start=_LazyPreRollout(cfg, run_dir, device) if cfg.transfer.pre_rollout_checkpoint else None,
+                      summary_extras=(lambda tasks: {"transfer": transfer_summary(cfg, run_dir, tasks)})
+                      if cfg.transfer.checkpoint is not None else None)
+    if HeldoutRecorder.wanted(cfg):
+        trainer.task_end_hooks.append(HeldoutRecorder(cfg, run_dir, device, lambda line: trainer.logger.print(line)))
     return trainer
+
+
+class _LazyPreRollout:
+    """A transfer's pre-rollout, its learner loaded on the first episode (not by commands that only inspect
+    the run); loading moves no random stream, so when it happens changes nothing."""
+
+    def __init__(self, cfg: Config, run_dir: Path, device: torch.device):
+        self.cfg, self.run_dir, self.device = cfg, run_dir, device
+        self._pre_rollout: PreRollout | None = None
+
+    def __call__(self, env, task_step: int):
+        if self._pre_rollout is None:
+            self._pre_rollout = PreRollout.from_config(self.cfg, self.run_dir, self.device)
+        return self._pre_rollout(env, task_step)
+
+
+# ---- transfers ---------------------------------------------------------------------------------------
+def new_transfer(run_dir: Path, task: str, after: int, out: Path | None = None, force: bool = False,
+                 progress: bool = True, **options: Any) -> Trainer:
+    """Create the transfer run directory and return its trainer (call ``.run()`` to train).
+
+    ``options`` are :func:`~drago.train.transfer.transfer_config`'s keyword arguments. The directory
+    defaults to ``RUN_DIR/transfer/{task}-after{K}``; an existing one is refused unless ``force``.
+
+    Raises:
+        RunDirError, ConfigError: one line (unknown task, stage out of range or not finished yet, not a
+            run directory, existing transfer directory, bad option).
+    """
+    cfg, out = plan_transfer(run_dir, task, after, out, **options)
+    return new_run(cfg, out, force=force, progress=progress)
+
+
+def run_transfer(trainer: Trainer) -> dict[str, Any]:
+    """Train a transfer run built by :func:`new_transfer` (or resumed) and print its few-shot scores."""
+    summary = trainer.run()
+    trainer.logger.print(describe(summary))
+    trainer.logger.close()
+    return summary
+
+
+def run_paper_cases(run_dir: Path, out: Path | None = None, force: bool = False, progress: bool = True,
+                    **options: Any) -> list[dict[str, Any]]:
+    """Run the paper's transfer cases of the run's domain one after the other.
+
+    A case whose directory already holds a finished transfer with the same settings is skipped, an
+    unfinished one is resumed; ``force`` redoes every case. ``out`` is the folder holding the cases
+    (default ``RUN_DIR/transfer``). Every case is checked before the first one starts.
+
+    Returns:
+        The summary of each case, in order.
+    """
+    plans = []
+    for task, after, cfg, case_dir in paper_transfer_plan(Path(run_dir), out, **options):
+        if case_dir.exists() and any(case_dir.iterdir()) and not force:
+            if not is_run_dir(case_dir):
+                raise RunDirError(f"{case_dir} is not empty and not a drago run; move it away or pass --force")
+            diffs = config_diffs(read_run_config(case_dir), cfg, ignore=())
+            if diffs:
+                raise RunDirError(f"{case_dir} holds a transfer with other settings ({'; '.join(diffs[:3])}); "
+                                  "pass --force to redo it")
+        plans.append((task, after, cfg, case_dir))
+    summaries = []
+    for task, after, cfg, case_dir in plans:
+        fresh = force or not is_run_dir(case_dir)
+        trainer = new_run(cfg, case_dir, force=force, progress=progress) if fresh else resume(case_dir, progress)
+        label = f"{task} after {after}"
+        if trainer.completed_tasks() == len(cfg.env.tasks):
+            summary = trainer.write_summary()
+            trainer.logger.print(f"[{label}] already finished in {case_dir}; skipped. " + describe(summary))
+            trainer.logger.close()
+            summaries.append(summary)
+            continue
+        trainer.logger.print(f"[{label}] {'starting' if fresh else 'resuming'} -> {case_dir}")
+        summaries.append(run_transfer(trainer))
+    return summaries

@@ -1,4 +1,4 @@
-"""The continual trainer: one task after another, the world model carried between them (spec §3.9-3.10).
+"""The continual trainer: one task after another, the world model carried between them (paper §3.3, Algorithm 1; docs: Design, how a run flows).
 
 Per iteration: one learner episode, the method's extra collection (DRAGO's reviewer), then
 ``updates_per_episode`` gradient iterations once past the seed phase; evaluation and periodic
@@ -9,9 +9,8 @@ uninterrupted one take exactly the same path.
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,74 +20,42 @@ from tqdm import tqdm
 
 from drago.agent.agent import Agent
 from drago.agent.buffer import EpisodeReplay
-from drago.agent.networks import WorldModel
+from drago.agent.networks import build_world_model
 from drago.config import Config
 from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
 from drago.envs import EnvSpec, make_env, task_optimum
-from drago.train.checkpoint import (
-    load_checkpoint,
-    rng_state,
-    save_checkpoint,
-    seeded_torch_rng,
-    set_rng_state,
-    task_checkpoint_path,
-)
+from drago.seeding import rng_state, seeded_torch_rng, set_rng_state, task_seed
+from drago.train.checkpoint import load_checkpoint, save_checkpoint
+from drago.train.episodes import EpisodeStart, run_episode, run_episodes
 from drago.train.logger import RunLogger
 from drago.train.resources import PeakMemory
+from drago.train.rundir import resume_checkpoint_path, task_checkpoint_path, write_summary
 
-@dataclass
-class Episode:
-    obs: np.ndarray  # (L+1, obs_dim)
-    actions: np.ndarray  # (L, act_dim)
-    rewards: np.ndarray  # (L,)
-
-    @property
-    def ret(self) -> float:
-        return float(self.rewards.sum())
-
-
-def run_episodes(envs, length: int, choose_actions, start=None) -> list[Episode]:
-    """Roll one fixed-length episode in each env, side by side; ``choose_actions(obs, t)`` maps the (E, n)
-    observations of step t to (E, n_a) actions, so one planner call serves every episode.
-
-    ``start(env)`` begins an episode and returns its first observation (None: ``env.reset()``); a
-    transfer's pre-rollout (spec §1.2.5) is such a start, whose steps are not part of the episode.
-    """
-    obs = np.stack([env.reset()[0] if start is None else start(env) for env in envs]).astype(np.float32)
-    observations, actions, rewards = [obs], [], []
-    for t in range(length):
-        action = np.asarray(choose_actions(obs, t), dtype=np.float32)
-        steps = [env.step(a) for env, a in zip(envs, action)]
-        obs = np.stack([step[0] for step in steps]).astype(np.float32)
-        observations.append(obs)
-        actions.append(action)
-        rewards.append([step[1] for step in steps])
-    observations, actions = np.stack(observations), np.stack(actions)
-    rewards = np.asarray(rewards, dtype=np.float32)
-    return [Episode(observations[:, e], actions[:, e], rewards[:, e]) for e in range(len(envs))]
-
-
-def run_episode(env, length: int, choose_action, start=None) -> Episode:
-    """One episode of :func:`run_episodes`; ``choose_action(obs, t)`` maps one observation to one action."""
-    return run_episodes([env], length, lambda obs, t: np.asarray(choose_action(obs[0], t))[None], start)[0]
-
-
-def build_world_model(cfg: Config, spec: EnvSpec, device: torch.device) -> WorldModel:
-    # The grid's observations lie in [-1, 1]: its dynamics end in tanh (spec §2.1).
-    return WorldModel(spec.obs_dim, spec.action_dim, cfg.agent.mlp_dim, cfg.agent.use_crelu,
-                      squash=spec.discrete).to(device)
-
-
-def task_seed(seed: int, task_index: int, *purpose: int) -> int:
-    """Independent, reproducible seeds per (run seed, task, purpose): a resumed task replays exactly."""
-    return int(np.random.SeedSequence([seed, task_index, *purpose]).generate_state(1)[0])
-
+#: Starts an episode at a task step: ``start(env, task_step)`` returns the first observation.
+TaskEpisodeStart = Callable[[Any, int], np.ndarray]
+#: Called when task ``index`` is finished: ``hook(index, learner, step)`` with the task's final learner and
+#: step counter, or ``(index, None, 0)`` for a task finished before this process started (a resumed run),
+#: which lets a hook fill in what an older or crashed run lacks.
+TaskEndHook = Callable[[int, "Agent | None", int], None]
+#: Extra blocks for ``summary.json``, given the summary's finished tasks.
+SummaryExtras = Callable[[list[dict[str, Any]]], dict[str, Any]]
 
 class Trainer:
-    """Runs the configured task sequence into ``run_dir`` (see :mod:`drago.train.run` to build one)."""
+    """Runs the configured task sequence into ``run_dir`` (:mod:`drago.train.run` builds one).
+
+    The trainer knows nothing of the features built on it; it is handed what it calls:
+
+    Args:
+        episode_start: how learner and evaluation episodes start (None: a plain reset), e.g. a transfer's
+            pre-rollout.
+        task_end_hooks: called after each task's end, before its checkpoint (a crash in between redoes
+            the end of the task and the hooks with it), e.g. recording the task's held-out set.
+        summary_extras: extra blocks of ``summary.json``, e.g. a transfer's few-shot scores.
+    """
 
     def __init__(self, cfg: Config, run_dir: Path, method: ContinualMethod, spec: EnvSpec, logger: RunLogger,
-                 device: torch.device, progress: bool = True):
+                 device: torch.device, progress: bool = True, episode_start: TaskEpisodeStart | None = None,
+                 task_end_hooks: Sequence[TaskEndHook] = (), summary_extras: SummaryExtras | None = None):
         self.cfg = cfg
         self.run_dir = run_dir
         self.method = method
@@ -96,8 +63,9 @@ class Trainer:
         self.logger = logger
         self.device = device
         self.progress = progress
-        self.ckpt_dir = run_dir / "checkpoints"
-        self._pre_rollout = None  # built on first use (transfer.pre_rollout_checkpoint)
+        self._episode_start = episode_start
+        self.task_end_hooks = list(task_end_hooks)
+        self.summary_extras = summary_extras
         self._eval_env_cache: tuple[str | None, list] = (None, [])
 
     # ---- paths and bookkeeping -------------------------------------------------------------
@@ -115,7 +83,7 @@ class Trainer:
 
     @property
     def resume_checkpoint(self) -> Path:
-        return self.ckpt_dir / "resume.pt"
+        return resume_checkpoint_path(self.run_dir)
 
     def completed_tasks(self) -> int:
         done = 0
@@ -138,7 +106,7 @@ class Trainer:
         cfg = self.cfg
         start = self.completed_tasks()
         for index in range(start):
-            self.record_heldout(index)  # a finished task without its set: a run older than held-out sets
+            self._task_finished(index)
         per_task = Budget.from_config(cfg).max_steps
         bar = tqdm(total=per_task * len(cfg.env.tasks), initial=start * per_task, unit="step", dynamic_ncols=True,
                    disable=None if self.progress else True, desc="drago")  # None: hide when not a terminal
@@ -152,7 +120,7 @@ class Trainer:
         return summary
 
     def build_task(self, index: int) -> tuple[TaskState, dict[str, Any] | None]:
-        """Everything task ``index`` starts with (spec §3.10), and the previous task's checkpoint.
+        """Everything task ``index`` starts with (paper §3.3; docs: Design, how a run flows), and the previous task's checkpoint.
 
         The world model comes from the previous task's checkpoint unless the method wants a fresh one;
         heads, optimizers, buffer and step counter are always new. Seeds depend only on (run seed,
@@ -255,8 +223,7 @@ class Trainer:
                                   last_eval_env, last_ckpt_env, last_eval)
 
         self.method.end_task(task)
-        # Before the task checkpoint: a crash in between redoes the end of the task, and this set with it.
-        self.record_heldout(index, learner, task.step)
+        self._task_finished(index, learner, task.step)
         wall = time.perf_counter() - started
         # Contention-free cost: CPU seconds of all threads, and this process's peak memory during the task.
         cost = {"cpu_time_s": time.process_time() - cpu_started, **memory.read()}
@@ -275,35 +242,17 @@ class Trainer:
                           + f", {task.episodes} episodes, {wall:.0f} s")
         self.write_summary()
 
-    # ---- how episodes start, held-out data ------------------------------------------------------
-    def episode_start(self, step: int):
-        """The ``start`` of learner and evaluation episodes at task step ``step``: None (a plain reset),
-        or a transfer's pre-rollout (:class:`~drago.train.transfer.PreRollout`)."""
-        if self.cfg.transfer.pre_rollout_checkpoint is None:
+    # ---- what the trainer is handed -------------------------------------------------------------
+    def episode_start(self, step: int) -> EpisodeStart | None:
+        """The ``start`` of learner and evaluation episodes at task step ``step`` (None: a plain reset)."""
+        if self._episode_start is None:
             return None
-        if self._pre_rollout is None:
-            from drago.train.transfer import PreRollout
+        start = self._episode_start
+        return lambda env: start(env, step)
 
-            self._pre_rollout = PreRollout.from_config(self.cfg, self.run_dir, self.device)
-        return lambda env: self._pre_rollout(env, step)
-
-    def heldout_file(self, index: int) -> Path:
-        return self.run_dir / "heldout" / f"task{index + 1}_{self.cfg.env.tasks[index]}.npz"
-
-    def record_heldout(self, index: int, learner: Agent | None = None, step: int = 0) -> None:
-        """Record task ``index``'s held-out transitions (DMC only; :mod:`drago.eval.heldout`): from its final
-        ``learner`` at task step ``step``, or, without one, from its checkpoint if the file is missing."""
-        cfg, path = self.cfg, self.heldout_file(index)
-        if cfg.env.domain == "minigrid" or cfg.train.heldout_episodes == 0 or (learner is None and path.exists()):
-            return
-        from drago.eval.heldout import record_heldout, record_transitions
-
-        if learner is None:
-            record_heldout(self.task_checkpoint(index), path, self.device)
-        else:
-            record_transitions(learner, step, cfg, index, path, self.device)
-        self.logger.print(f"[{cfg.env.tasks[index]}] held-out set: {cfg.train.heldout_episodes} eval-mode episodes "
-                          f"of the final learner -> {path.relative_to(self.run_dir)}")
+    def _task_finished(self, index: int, learner: Agent | None = None, step: int = 0) -> None:
+        for hook in self.task_end_hooks:
+            hook(index, learner, step)
 
     # ---- evaluation --------------------------------------------------------------------------
     def _eval_due(self, task: TaskState, env_step: int, last_eval_env: int) -> bool:
@@ -409,11 +358,7 @@ class Trainer:
         summary = {"preset": cfg.preset, "method": cfg.method.name, "seed": cfg.train.seed, "domain": cfg.env.domain,
                    "tasks_planned": list(cfg.env.tasks), "complete": len(tasks) == len(cfg.env.tasks),
                    "tasks": tasks, "wall_time_s": round(sum(t["wall_time_s"] for t in tasks), 2)}
-        if cfg.transfer.checkpoint is not None:
-            from drago.train.transfer import transfer_summary
-
-            summary["transfer"] = transfer_summary(cfg, self.run_dir, tasks)
-        tmp = self.run_dir / "summary.json.tmp"
-        tmp.write_text(json.dumps(summary, indent=2) + "\n")
-        tmp.replace(self.run_dir / "summary.json")
+        if self.summary_extras is not None:
+            summary.update(self.summary_extras(tasks))
+        write_summary(self.run_dir, summary)
         return summary

@@ -1,4 +1,4 @@
-"""Transfer: a test task learned from the world model a run saved after stage K (spec §4.2-4.3).
+"""Transfer: a test task learned from the world model a run saved after stage K (paper §4.4).
 
 A transfer is an ordinary single-task run whose config says where its world model comes from
 (:class:`~drago.config.TransferConfig`): the trainer loads the stage-K checkpoint exactly as the next
@@ -20,7 +20,7 @@ The transfer's config is the source run's with these changes:
 The same function relearns a training task from a later world model (``--task room1 --after 4``), the
 paper's walker appendix table for any domain.
 
-DeepMind Control test tasks (spec §1.2.5, Table 1) are named by their catalogue entry
+DeepMind Control test tasks (paper §4.4, Table 1) are named by their catalogue entry
 (:data:`~drago.envs.tasks.DMC_TRANSFER_TASKS`, e.g. ``--task jump2run --after 2``): the run learns the
 entry's target task, and for the "X2Y" entries every learner and evaluation episode starts with a
 pre-rollout (:class:`PreRollout`): a reset, then ``pre_rollout_steps`` agent steps of the source task's
@@ -34,33 +34,26 @@ import copy
 import csv
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
-from drago.agent.agent import Agent
-from drago.agent.networks import linear_schedule
 from drago.config import Config, ConfigError, validate
-from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask
-from drago.train.checkpoint import seeded_torch_rng, task_checkpoint_path
-from drago.train.run import CONFIG_FILE, RunDirError, new_run, read_run_config, resume
-from drago.train.trainer import Trainer
+from drago.envs import GRID_TASKS, available_tasks, task_optimum
+from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask, get_grid_task
+from drago.train.rundir import TRANSFER_FOLDER, RunDirError, read_run_config, task_checkpoint_path
 
-__all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "PreRollout", "SavedLearner", "TransferCase", "default_transfer_dir",
-           "describe", "few_shot_schedule", "finished_stages", "load_learner", "new_transfer", "paper_cases",
-           "resolve_task", "run_paper_cases", "run_transfer", "seeded_torch_rng", "stage_checkpoint",
-           "training_returns", "transfer_config", "transfer_summary"]
+__all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "TransferCase", "default_transfer_dir", "describe",
+           "few_shot_schedule", "finished_stages", "paper_cases", "paper_transfer_plan", "plan_transfer",
+           "resolve_task", "stage_checkpoint", "training_returns", "transfer_config", "transfer_summary"]
 
-DEFAULT_EPISODES = 20  # learner episodes of a transfer (the few-shot protocol, spec §4.3)
-TRANSFER_FOLDER = "transfer"
+DEFAULT_EPISODES = 20  # learner episodes of a transfer (the few-shot protocol, paper §4.4)
 
 TransferCase = tuple[str, int]  # (test task, stage K)
 
-#: The paper's test tasks per domain and the stage each is learned after (spec §1.1.4; DeepMind Control:
-#: Table 1 as catalogued in DMC_TRANSFER_TASKS, spec §1.2.5, stages in the paper's sequence).
+#: The paper's test tasks per domain and the stage each is learned after (paper Appendix C; DeepMind Control:
+#: Table 1 as catalogued in DMC_TRANSFER_TASKS, paper §4.4, Table 1, stages in the paper's sequence).
 PAPER_CASES: dict[str, tuple[TransferCase, ...]] = {
     "minigrid": (("room1to2", 2), ("room1to3", 3), ("room1to3", 4), ("room3to4", 4)),
     **{domain: tuple((t.name, t.stage) for t in DMC_TRANSFER_TASKS.values() if t.domain == domain)
@@ -97,8 +90,6 @@ def resolve_task(source: Config, task: str) -> tuple[str, DmcTransferTask | None
     Raises:
         ConfigError: a name that is neither (one line listing the valid ones).
     """
-    from drago.envs import available_tasks
-
     domain = source.env.domain
     case = DMC_TRANSFER_TASKS.get(task)
     if case is not None and case.domain == domain:
@@ -218,7 +209,11 @@ def _pre_rollout_stage(run_dir: Path, cfg: Config, case: DmcTransferTask) -> Pat
     return path
 
 
-def _planned(run_dir: Path, task: str, after: int, out: Path | None, **options: Any) -> tuple[Config, Path]:
+def plan_transfer(run_dir: Path, task: str, after: int, out: Path | None, **options: Any) -> tuple[Config, Path]:
+    """The config and directory of a transfer of ``task`` from ``run_dir``'s stage ``after``, all checked.
+
+    ``options`` are :func:`transfer_config`'s keyword arguments.
+    """
     source = read_run_config(Path(run_dir))
     _, case = resolve_task(source, task)  # before the stage check: a typo in the task is the likelier mistake
     checkpoint = _check_stage(Path(run_dir), source, after)
@@ -229,29 +224,6 @@ def _planned(run_dir: Path, task: str, after: int, out: Path | None, **options: 
         pre = _pre_rollout_stage(Path(run_dir), source, case)
         options = {**options, "pre_rollout_checkpoint": os.path.relpath(pre.resolve(), out.resolve())}
     return transfer_config(source, task, relative, after, **options), out
-
-
-def new_transfer(run_dir: Path, task: str, after: int, out: Path | None = None, force: bool = False,
-                 progress: bool = True, **options: Any) -> Trainer:
-    """Create the transfer run directory and return its trainer (call ``.run()`` to train).
-
-    ``options`` are :func:`transfer_config`'s keyword arguments. The directory defaults to
-    ``RUN_DIR/transfer/{task}-after{K}``; an existing one is refused unless ``force``.
-
-    Raises:
-        RunDirError, ConfigError: one line (unknown task, stage out of range or not finished yet, not a
-            run directory, existing transfer directory, bad option).
-    """
-    cfg, out = _planned(run_dir, task, after, out, **options)
-    return new_run(cfg, out, force=force, progress=progress)
-
-
-def run_transfer(trainer: Trainer) -> dict[str, Any]:
-    """Train a transfer run built by :func:`new_transfer` (or resumed) and print its few-shot scores."""
-    summary = trainer.run()
-    trainer.logger.print(describe(summary))
-    trainer.logger.close()
-    return summary
 
 
 def describe(summary: dict[str, Any]) -> str:
@@ -271,16 +243,11 @@ def describe(summary: dict[str, Any]) -> str:
             f"{score(few['equal_episodes'])}; at equal env steps: {score(few['equal_env_steps'])}")
 
 
-def run_paper_cases(run_dir: Path, out: Path | None = None, force: bool = False, progress: bool = True,
-                    **options: Any) -> list[dict[str, Any]]:
-    """Run the paper's transfer cases of the run's domain one after the other.
+def paper_transfer_plan(run_dir: Path, out: Path | None = None,
+                        **options: Any) -> list[tuple[str, int, Config, Path]]:
+    """``(task, stage, config, directory)`` of each of the paper's transfer cases of a run, all checked.
 
-    A case whose directory already holds a finished transfer with the same settings is skipped, an
-    unfinished one is resumed; ``force`` redoes every case. ``out`` is the folder holding the cases
-    (default ``RUN_DIR/transfer``). Every case is checked before the first one starts.
-
-    Returns:
-        The summary of each case, in order.
+    ``out`` is the folder holding the cases (default ``RUN_DIR/transfer``).
     """
     run_dir = Path(run_dir)
     source = read_run_config(run_dir)
@@ -290,47 +257,19 @@ def run_paper_cases(run_dir: Path, out: Path | None = None, force: bool = False,
     plans = []
     for task, after in cases:
         case_out = (Path(out) / f"{task}-after{after}") if out is not None else None
-        cfg, case_dir = _planned(run_dir, task, after, case_out, **options)
-        if case_dir.exists() and any(case_dir.iterdir()) and not force:
-            _check_same_settings(case_dir, cfg)
+        cfg, case_dir = plan_transfer(run_dir, task, after, case_out, **options)
         plans.append((task, after, cfg, case_dir))
-    summaries = []
-    for task, after, cfg, case_dir in plans:
-        fresh = force or not (case_dir / CONFIG_FILE).is_file()
-        trainer = new_run(cfg, case_dir, force=force, progress=progress) if fresh else resume(case_dir, progress)
-        label = f"{task} after {after}"
-        if trainer.completed_tasks() == len(cfg.env.tasks):
-            summary = trainer.write_summary()
-            trainer.logger.print(f"[{label}] already finished in {case_dir}; skipped. " + describe(summary))
-            trainer.logger.close()
-            summaries.append(summary)
-            continue
-        trainer.logger.print(f"[{label}] {'starting' if fresh else 'resuming'} -> {case_dir}")
-        summaries.append(run_transfer(trainer))
-    return summaries
+    return plans
 
 
 def _paper_stage(run_dir: Path, cfg: Config, case: DmcTransferTask) -> int:
     """The stage of the run after which a Table 1 test task is learned: after its ``after`` task, found by
-    name, so runs of the paper's sequence get the catalogue's stage (spec §1.2.5)."""
+    name, so runs of the paper's sequence get the catalogue's stage (paper §4.4, Table 1)."""
     stages = [k for k, name in enumerate(cfg.env.tasks, start=1) if name == case.after]
     if not stages:
         raise RunDirError(f"{case.name} ({case.paper_name}) is learned after {case.after}, which {run_dir} never "
                           f"trains (tasks: {', '.join(cfg.env.tasks)}); run it with --task {case.name} --after K")
     return stages[-1]
-
-
-def _check_same_settings(case_dir: Path, cfg: Config) -> None:
-    if not (case_dir / CONFIG_FILE).is_file():
-        raise RunDirError(f"{case_dir} is not empty and not a drago run; move it away or pass --force")
-    existing = read_run_config(case_dir).to_dict()
-    wanted = cfg.to_dict()
-    diffs = [f"{section}.{key}: {existing[section].get(key)!r} there, {value!r} asked"
-             for section, values in wanted.items() if isinstance(values, dict)
-             for key, value in values.items() if existing[section].get(key) != value]
-    if diffs:
-        raise RunDirError(f"{case_dir} holds a transfer with other settings ({'; '.join(diffs[:3])}); "
-                          "pass --force to redo it")
 
 
 # ---- summary ---------------------------------------------------------------------------------------
@@ -367,15 +306,12 @@ def training_returns(cfg: Config, run_dir: Path) -> dict[str, Any] | None:
 def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The transfer block of ``summary.json``: few-shot scores and the budget actually spent.
 
-    The few-shot score is read twice (spec §4.3 leaves the comparison open): after
+    The few-shot score is read twice (paper §4.4 leaves the comparison open): after
     ``few_shot_episodes`` learner episodes (``equal_episodes``, the paper's reading for DRAGO), and at the
     last evaluation whose total env steps (learner plus reviewer) do not exceed what a learner alone
     spends in that many episodes (``equal_env_steps``). Without a reviewer the two coincide. A score is
     None until the run has reached it.
     """
-    from drago.envs import GRID_TASKS, task_optimum
-    from drago.envs.tasks import get_grid_task
-
     task = cfg.env.tasks[0]
     few = cfg.transfer.few_shot_episodes
     rows = []
@@ -412,105 +348,3 @@ def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]
         "total_env_steps": done["env_steps"] if done else None,
         "wall_time_s": done["wall_time_s"] if done else None,
     }
-
-
-# ---- pre-rollouts (spec §1.2.5) --------------------------------------------------------------------
-@dataclass
-class SavedLearner:
-    """The learner a task checkpoint holds: its heads over that checkpoint's world model.
-
-    Attributes:
-        agent: planner-ready agent (never trained: it has no world-model optimizer).
-        config: the config of the run that wrote the checkpoint.
-        task: the checkpoint's task; task_index its 0-based position in that run's sequence.
-        steps: the task's step counter at its end, where the learner's horizon schedule stood.
-    """
-
-    agent: Agent
-    config: Config
-    task: str
-    task_index: int
-    steps: int
-
-
-def load_learner(path: str | Path, device: torch.device | str = "cpu") -> SavedLearner:
-    """The final learner of a task checkpoint, planning as it did at the end of its task.
-
-    Its CEM std floor is the one the trainer saved with it (checkpoints written before that field take
-    the floor's schedule at the task's last step, the same up to one iteration's updates).
-
-    Raises:
-        drago.train.checkpoint.CheckpointError: missing, corrupt or foreign file, or no learner heads.
-    """
-    from drago.envs import env_spec
-    from drago.train.checkpoint import CheckpointError, load_checkpoint
-    from drago.train.trainer import build_world_model
-
-    path, device = Path(path), torch.device(device)
-    data = load_checkpoint(path, kind="task", map_location=device)
-    if "learner" not in data or "config" not in data:
-        raise CheckpointError(f"{path} holds no learner heads; it cannot drive a pre-rollout or record held-out data")
-    try:
-        cfg = Config.from_dict(data["config"])
-    except (ConfigError, ValueError) as err:
-        raise CheckpointError(f"{path}: {err}") from None
-    spec = env_spec(data["domain"])
-    # Building networks draws initial weights from torch's global generator: isolate it, so loading a
-    # learner mid-run (a pre-rollout's, on first use or after a resume) leaves the training's stream alone.
-    with seeded_torch_rng(0, device):
-        world_model = build_world_model(cfg, spec, device)
-        agent = Agent(world_model, None, cfg.agent, spec.discrete)
-    world_model.load_state_dict(data["world_model"])
-    agent.heads.load_state_dict(data["learner"])
-    steps = int(data["steps"])
-    a = cfg.agent
-    agent.std_floor = float(data.get("learner_std_floor",
-                                     linear_schedule(a.std_schedule_start, a.min_std, a.std_schedule_steps, steps)))
-    return SavedLearner(agent=agent, config=cfg, task=str(data["task"]), task_index=int(data["task_index"]),
-                        steps=steps)
-
-
-class PreRollout:
-    """How an episode of an X2Y test task starts (spec §1.2.5): reset, then ``steps`` agent steps of a
-    saved learner in eval mode; returns the observation the test episode starts from.
-
-    Nothing is stored or counted, and nothing is kept between episodes: the randomness of one
-    pre-rollout comes from a seed drawn from the env's ``np_random`` right after the reset (the state a
-    resumable checkpoint saves), on a torch stream of its own, so the trainer's streams do not move.
-
-    Args:
-        learner: the source learner (:func:`load_learner`).
-        steps: agent steps of each pre-rollout.
-        planning: ``"source"``: the horizon and CEM std floor the learner had at the end of its task;
-            ``"code"``: the official code's quirk, the current task's horizon schedule and the initial
-            std floor (spec §1.2.5).
-        device: where the learner lives.
-    """
-
-    def __init__(self, learner: SavedLearner, steps: int, planning: str = "source",
-                 device: torch.device | str = "cpu"):
-        self.learner = learner
-        self.steps = int(steps)
-        self.planning = planning
-        self.device = torch.device(device)
-        if planning == "code":
-            learner.agent.std_floor = learner.config.agent.std_schedule_start
-
-    @classmethod
-    def from_config(cls, cfg: Config, run_dir: Path, device: torch.device | str = "cpu") -> PreRollout:
-        """The pre-rollout a run's ``transfer`` settings ask for (its checkpoint relative to ``run_dir``)."""
-        path = Path(run_dir) / cfg.transfer.pre_rollout_checkpoint  # an absolute path stays absolute
-        return cls(load_learner(path, device), cfg.transfer.pre_rollout_steps, cfg.transfer.pre_rollout_planning,
-                   device)
-
-    def __call__(self, env, task_step: int = 0) -> np.ndarray:
-        """Reset ``env`` and pre-roll it; ``task_step`` is the current task's step ("code" planning)."""
-        obs, _ = env.reset()
-        if self.steps == 0:
-            return obs
-        agent = self.learner.agent
-        plan_step = self.learner.steps if self.planning == "source" else task_step
-        with seeded_torch_rng(int(env.np_random.integers(2**63)), self.device):
-            for t in range(self.steps):
-                obs, _, _, _, _ = env.step(agent.act(obs, plan_step, eval_mode=True, first_step=t == 0))
-        return obs

@@ -1,0 +1,242 @@
+"""MkDocs hook: the settings reference, generated at build time from drago/config.py.
+
+``docs/reference/settings.md`` holds only an introduction and two markers; this hook replaces them:
+
+* ``<!-- drago:settings -->`` with one table per config section (env, agent, train, method, transfer):
+  every setting's key, type and default from ``drago.config.describe_settings()``, and its description
+  from the comments beside and above the dataclass field in the source of drago/config.py;
+* ``<!-- drago:presets -->`` with what each preset YAML in drago/presets changes from those defaults.
+
+So the page cannot drift from the code: a new setting, a changed default or comment shows up at the
+next ``mkdocs build``. tests/test_docs.py builds the site and checks every setting is on the page.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib
+import inspect
+import io
+import logging
+import re
+import sys
+import textwrap
+import tokenize
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("mkdocs.hooks.settings_page")
+
+PAGE = "reference/settings.md"
+SETTINGS_MARKER = "<!-- drago:settings -->"
+PRESETS_MARKER = "<!-- drago:presets -->"
+
+# Source comments cite sections of an internal specification that users do not have; the page drops
+# those citations. README section names that moved into this site become links.
+_SPEC_CITATION = re.compile(r"\s*\((?:see )?spec §[^)]*\)|\s*\(§\d[^)]*\)")
+_MOVED = {'README "Speed and precision"': "[Speed and precision](../speed.md)"}
+# A comment block of this form above a field starts a group of settings: "# -- EWC --", "# Planning."
+_GROUP = re.compile(r"^--\s*(.+?)\s*--$")
+
+
+@dataclasses.dataclass
+class FieldDoc:
+    name: str
+    description: str
+    group: str | None
+
+
+def _clean(text: str) -> str:
+    text = _SPEC_CITATION.sub("", text)
+    for old, new in _MOVED.items():
+        text = text.replace(old, new)
+    return re.sub(r"\s+", " ", text).strip()
+
+
+def _comments_by_line(source: str) -> dict[int, tuple[str, bool]]:
+    """Line number -> (comment text, whether the line holds nothing but the comment)."""
+    comments: dict[int, tuple[str, bool]] = {}
+    lines = source.splitlines()
+    for token in tokenize.generate_tokens(io.StringIO(source).readline):
+        if token.type == tokenize.COMMENT:
+            row, col = token.start
+            alone = not lines[row - 1][:col].strip()
+            comments[row] = (token.string.lstrip("#").strip(), alone)
+    return comments
+
+
+def field_docs(cls: type) -> list[FieldDoc]:
+    """Every field of a config dataclass with the comments around it in the source."""
+    source = textwrap.dedent(inspect.getsource(cls))
+    comments = _comments_by_line(source)
+    class_node = ast.parse(source).body[0]
+    docs: list[FieldDoc] = []
+    group: str | None = None
+    for node in class_node.body:
+        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
+            continue
+        # The comment block right above the field (no blank line in between), read upwards.
+        block: list[str] = []
+        row = node.lineno - 1
+        while row >= 1 and row in comments and comments[row][1]:
+            block.insert(0, comments[row][0])
+            row -= 1
+        text = " ".join(block)
+        heading = _GROUP.match(text)
+        if heading:
+            group, text = _clean(heading.group(1)), ""
+        elif text:
+            # A block that opens with a one- or two-word sentence ("Planning.", "Speed (...).") starts a
+            # group; the rest of the block describes the field below it.
+            first, _, rest = text.partition(". ")
+            if len(re.sub(r"\([^)]*\)", "", first).rstrip(".").split()) <= 2:
+                group, text = _clean(first).rstrip("."), rest
+        inline = comments.get(node.end_lineno)
+        parts = []
+        if inline and not inline[1]:
+            # The comment after the field first (often the valid values), then the block above it.
+            parts.append(inline[0] if not text or inline[0].endswith((".", ";", ":")) else inline[0] + ".")
+        if text:
+            parts.append(text)
+        docs.append(FieldDoc(node.target.id, _clean(" ".join(parts)), group))
+    return docs
+
+
+def _config_module():
+    # import_module, not `from drago import config`: the latter asks the package for an attribute first,
+    # and drago's lazy public API would import the whole trainer to answer it.
+    return importlib.import_module("drago.config")
+
+
+def _value(value: Any) -> str:
+    """A default as one would write it in a preset or an override."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_value(v) for v in value) + "]"
+    return str(value)
+
+
+def _cell(text: str) -> str:
+    """Comment text for a table cell, Markdown-safe outside its `code` spans."""
+    # Python-Markdown's tables never split a row at a pipe inside a code span, and would show a
+    # backslash there literally, so pipes are escaped outside code spans only.
+    pieces = re.split(r"(`[^`]*`)", text)
+    for i in range(0, len(pieces), 2):
+        pieces[i] = pieces[i].replace("<", "&lt;").replace(">", "&gt;").replace("*", "\\*").replace("|", "\\|")
+    return "".join(pieces) or "—"
+
+
+def _code(text: str) -> str:
+    return f"`{text}`"
+
+
+def settings_markdown() -> str:
+    config_module = _config_module()
+
+    defaults = config_module.Config()
+    described = {key: (type_name, default) for key, type_name, default in config_module.describe_settings()}
+    out: list[str] = []
+    seen: set[str] = set()
+    for section in config_module.SECTIONS:
+        cls = type(getattr(defaults, section))
+        summary = _clean(inspect.cleandoc(cls.__doc__ or "").split("\n\n")[0].replace("\n", " "))
+        out += [f"## `{section}`: {cls.__name__} {{#{section}}}", "", summary, ""]
+        group: str | None = None
+        table_open = False
+        for doc in field_docs(cls):
+            key = f"{section}.{doc.name}"
+            if key not in described:
+                log.warning("settings page: %s is a field of %s but describe_settings() does not list it",
+                            key, cls.__name__)
+                continue
+            seen.add(key)
+            if doc.group != group or not table_open:
+                if doc.group != group and doc.group:
+                    out += ["", f"**{doc.group}**", ""]
+                group = doc.group
+                out += ["| setting | type | default | what it does |", "|---|---|---|---|"]
+                table_open = True
+            type_name, default = described[key]
+            out.append(f"| {_code(key)} | {_code(type_name)} | {_code(_value(default))} | {_cell(doc.description)} |")
+        out.append("")
+    for key in described:
+        if key not in seen:
+            log.warning("settings page: describe_settings() lists %s, which no config dataclass field documents", key)
+    return "\n".join(out)
+
+
+def _presets_dir() -> Path:
+    from importlib import resources
+
+    return Path(str(resources.files("drago") / "presets"))
+
+
+def _read_preset(directory: Path, name: str) -> tuple[dict[str, dict[str, Any]], str | None]:
+    import yaml
+
+    data = yaml.safe_load((directory / f"{name}.yaml").read_text()) or {}
+    base = data.pop("base", None)
+    merged: dict[str, dict[str, Any]] = {}
+    if base is not None:
+        merged = {section: dict(values) for section, values in _read_preset(directory, base)[0].items()}
+    for section, values in data.items():
+        if isinstance(values, dict):
+            merged.setdefault(section, {}).update(values)
+    return merged, base
+
+
+def presets_markdown() -> str:
+    config_module = _config_module()
+
+    directory = _presets_dir()
+    names = sorted(p.stem for p in directory.glob("*.yaml"))
+    if not names:
+        log.warning("settings page: no preset YAML files found in %s", directory)
+        return ""
+    order = {"minigrid": 0, "minigrid-cpu": 1, "smoke": 2}
+    names.sort(key=lambda n: (order.get(n, 3), n))
+    defaults = {key: default for key, _, default in config_module.describe_settings()}
+    resolved = {name: _read_preset(directory, name) for name in names}
+    changed: dict[str, dict[str, Any]] = {}
+    for name, (values, _) in resolved.items():
+        for section, settings in values.items():
+            for setting, value in settings.items():
+                key = f"{section}.{setting}"
+                if key not in defaults:
+                    log.warning("settings page: preset %s sets unknown setting %s", name, key)
+                    continue
+                default = defaults[key]
+                same = (list(value) == list(default)) if isinstance(default, tuple) and isinstance(value, list) \
+                    else value == default
+                if not same:
+                    changed.setdefault(key, {})[name] = value
+    keys = [key for key in defaults if key in changed]
+    out = ["| setting | default | " + " | ".join(f"`{n}`" for n in names) + " |",
+           "|---|---|" + "---|" * len(names)]
+    out.append("| *based on* | | " + " | ".join(f"`{resolved[n][1]}`" if resolved[n][1] else "" for n in names) + " |")
+    for key in keys:
+        cells = [_code(_value(changed[key][n])) if n in changed[key] else "" for n in names]
+        out.append(f"| [{_code(key)}](#{key.split('.')[0]}) | {_code(_value(defaults[key]))} | " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
+
+
+def on_config(config, **kwargs):
+    # The hook imports drago; make the checkout importable even where it is not installed.
+    root = str(Path(config.config_file_path).resolve().parent)
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    return config
+
+
+def on_page_markdown(markdown: str, page, config, files, **kwargs) -> str:
+    if page.file.src_uri != PAGE:
+        return markdown
+    for marker in (SETTINGS_MARKER, PRESETS_MARKER):
+        if marker not in markdown:
+            log.warning("settings page: %s lacks the marker %s", PAGE, marker)
+    return (markdown.replace(SETTINGS_MARKER, settings_markdown())
+            .replace(PRESETS_MARKER, presets_markdown()))

@@ -261,7 +261,7 @@ def _add_report_parser(sub) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from drago.eval.report import build_report
+    from drago.report import build_report
 
     for path in build_report(args.run_dirs, args.out):
         print(f"wrote {path}")

@@ -24,7 +24,6 @@ never races an orphan for a run directory, and a lock file keeps two studies out
 from __future__ import annotations
 
 import contextlib
-import csv
 import os
 import signal
 import statistics
@@ -40,6 +39,7 @@ from typing import Any
 
 from drago.config import Config, ConfigError, load_config
 from drago.continual import check_method
+from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
 from drago.train.resources import keep_freed_memory_requested
 from drago.train.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
 from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule, plan_transfer
@@ -53,8 +53,6 @@ DEFAULT_SEEDS = (1, 2, 3)
 LOG_FOLDER = "logs"
 REPORT_FOLDER = "report"
 LOCK_FILE = ".study.lock"
-TRANSFERS_CSV = "transfers.csv"
-TRANSFERS_MD = "transfers.md"
 PARENT_ENV = "DRAGO_STUDY_PARENT"
 
 START, RESUME, DONE = "start", "resume", "done"
@@ -563,7 +561,7 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
 # report
 # ---------------------------------------------------------------------------------------------------
 def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Path], str | None]:
-    from drago.eval.report import build_report
+    from drago.report import build_report, write_transfer_tables
     from drago.train.checkpoint import CheckpointError
 
     run_dirs = [job.directory for job in plan.runs if is_run_dir(job.directory)]
@@ -571,83 +569,13 @@ def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Pa
         return [], "no run of the study has started"
     try:
         paths = list(build_report(run_dirs, plan.report_dir))
-        rows = transfer_rows(plan.transfers)
-        if rows:
-            paths += write_transfer_tables(rows, plan.report_dir)
+        paths += write_transfer_tables([job.directory for job in plan.transfers], plan.report_dir)
     except (RunDirError, ConfigError, CheckpointError) as err:
         echo(f"report not written: {err}")
         return [], str(err)
     for path in paths:
         echo(f"wrote {path}")
     return paths, None
-
-
-TRANSFER_COLUMNS = ("method", "seed", "task", "after", "complete", "few_shot_episodes", "optimal_return",
-                    "return_equal_episodes", "fraction_equal_episodes", "return_equal_env_steps",
-                    "fraction_equal_env_steps", "total_env_steps", "wall_time_s", "directory")
-
-
-def transfer_rows(jobs: Iterable[Job]) -> list[dict[str, Any]]:
-    """One row per transfer case that has a summary: its few-shot scores, read in both ways (paper §4.4)."""
-    rows = []
-    for job in jobs:
-        try:
-            summary = read_summary(job.directory)  # None before the first task: a TypeError below
-            block = summary["transfer"]
-        except (RunDirError, KeyError, TypeError):
-            continue
-        few = block.get("few_shot") or {}
-        at_episodes, at_steps = few.get("equal_episodes") or {}, few.get("equal_env_steps") or {}
-        rows.append({"method": job.method, "seed": job.seed, "task": block.get("task"), "after": block.get("after"),
-                     "complete": summary.get("complete") is True,
-                     "few_shot_episodes": block.get("few_shot_episodes"),
-                     "optimal_return": block.get("optimal_return"),
-                     "return_equal_episodes": at_episodes.get("return"),
-                     "fraction_equal_episodes": at_episodes.get("fraction_of_optimal"),
-                     "return_equal_env_steps": at_steps.get("return"),
-                     "fraction_equal_env_steps": at_steps.get("fraction_of_optimal"),
-                     "total_env_steps": block.get("total_env_steps"), "wall_time_s": block.get("wall_time_s"),
-                     "directory": str(job.directory)})
-    return rows
-
-
-def _mean_std(values: list[float]) -> str:
-    if not values:
-        return "–"
-    if len(values) == 1:
-        return f"{values[0]:.1f} (1)"
-    return f"{statistics.mean(values):.1f} ± {statistics.stdev(values):.1f} ({len(values)})"
-
-
-def write_transfer_tables(rows: list[dict[str, Any]], out_dir: Path) -> list[Path]:
-    """``transfers.csv`` (one row per case and seed) and ``transfers.md`` (mean ± std over seeds)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv_path, md_path = out_dir / TRANSFERS_CSV, out_dir / TRANSFERS_MD
-    with csv_path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=TRANSFER_COLUMNS)
-        writer.writeheader()
-        writer.writerows({k: ("" if v is None else v) for k, v in row.items()} for row in rows)
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    cases = list(dict.fromkeys((r["task"], r["after"]) for r in rows))
-    optimum = {(r["task"], r["after"]): r["optimal_return"] for r in rows}
-    lines = ["# Transfers: few-shot return", "",
-             "Evaluation return on each test task learned from the world model saved after stage K (paper §4.4): "
-             "mean ± std over seeds (number of seeds). Rows of unfinished cases are left out until they reach the "
-             "score. Per-seed values and fractions of the DP optimum are in "
-             f"`{TRANSFERS_CSV}`; each case's curves in its `eval.csv`."]
-    for key, title in (("return_equal_episodes", "after the same number of learner episodes (the paper's reading)"),
-                       ("return_equal_env_steps", "at the same total env steps (a reviewer's steps counted)")):
-        lines += ["", f"## {title.capitalize()}", "",
-                  "| case | optimum | " + " | ".join(methods) + " |",
-                  "|---|---|" + "---|" * len(methods)]
-        for task, after in cases:
-            cells = [_mean_std([r[key] for r in rows if r["method"] == m and (r["task"], r["after"]) == (task, after)
-                                and r[key] is not None]) for m in methods]
-            best = optimum[(task, after)]
-            best = "" if best is None else f"{best:.1f}"
-            lines.append(f"| {task} after {after} | {best} | " + " | ".join(cells) + " |")
-    md_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return [csv_path, md_path]
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from drago.eval.heldout import (  # noqa: E402
     retention_matrix,
     write_retention_csv,
 )
-from drago.eval.report import build_report  # noqa: E402
+from drago.report import build_report  # noqa: E402
 from drago.train import trainer as trainer_module  # noqa: E402
 from drago.seeding import task_seed  # noqa: E402
 

@@ -1,0 +1,141 @@
+"""Building a report from run directories: read, compute, render, write."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from datetime import datetime
+from pathlib import Path
+
+from drago.eval.coverage import (
+    GRID_DOMAIN,
+)
+from drago.report.content import Figure, Findings, Notes, Section
+from drago.report.figures import CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, curves_png, heatmap_figure, transfer_png
+from drago.report.render import REPORT_HTML, REPORT_MD, render_html, render_markdown
+from drago.report.runs import ReportError, find_run_dirs, find_transfer_dirs, label_runs, read_run, task_order
+from drago.report.tables import (
+    coverage_matrix,
+    coverage_rows,
+    coverage_table,
+    find_gaps,
+    forward_transfer_table,
+    metrics_table,
+    retention_rows,
+    retention_score_matrix,
+    retention_tables,
+    returns_table,
+    runs_table,
+)
+from drago.report.transfers import relearning_metrics, training_table, transfer_block, transfer_gaps, transfer_tables
+from drago.train.rundir import CONFIG_FILE
+
+
+def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``report.html`` (self-contained) and ``report.md`` (with PNG figures) for ``run_dirs``.
+
+    Args:
+        run_dirs: Run directories, or folders holding run directories (see :func:`find_run_dirs`).
+            Any mix of methods and seeds, finished or not. The transfer runs each run holds
+            (``RUN_DIR/transfer/*``) are reported too; a transfer run given directly is one of them,
+            never a continual run of its method.
+        out_dir: Output folder, created if needed; nothing is written anywhere else.
+
+    Returns:
+        ``(html_path, md_path)``.
+
+    Raises:
+        ReportError: A path without runs, or an unreadable run file (one-line message).
+        drago.config.ConfigError: An invalid ``config.yaml``.
+        drago.train.checkpoint.CheckpointError: A corrupt checkpoint.
+    """
+    given = [read_run(path) for path in find_run_dirs(run_dirs)]
+    runs = [run for run in given if not run.is_transfer]
+    transfers = [run for run in given if run.is_transfer]
+    findings = Findings()
+    seen = {run.path.resolve() for run in given}
+    for run in runs:
+        for path in find_transfer_dirs(run.path):
+            if path.resolve() in seen:
+                continue
+            seen.add(path.resolve())
+            found = read_run(path)
+            if found.is_transfer:
+                transfers.append(found)
+            else:
+                findings.missing.append(f"{path}: not a transfer run (no transfer.checkpoint in its "
+                                        f"{CONFIG_FILE}); left out")
+    groups = label_runs(runs)
+    found_groups = label_runs(transfers)
+    tgroups = {label: found_groups[label] for label in dict.fromkeys([*groups, *found_groups]) if label in found_groups}
+    colours = {label: f"C{i % 10}" for i, label in enumerate(dict.fromkeys([*groups, *tgroups]))}
+    tasks = task_order(runs)
+    coverage = {run.path: coverage_rows(run, findings) for run in runs}
+
+    sections: list[Section] = [runs_table(groups), returns_table(groups, tasks)]
+    curves = curves_png(groups, tasks, colours)
+    if curves is not None:
+        sections.append(Figure("curves", "Learning curves", "Evaluation return during each task, as a fraction of "
+                               "the DP optimum (grid) or raw return (DeepMind Control, no known optimum), against "
+                               "the task's env steps (learner plus reviewer; when a reviewer spent any, the top "
+                               "row is against the learner's env steps alone): the mean over seeds with its 95% "
+                               "bootstrap CI as a band (no band for a single seed).", curves, CURVES_PNG))
+    sections += forward_transfer_table(groups, tasks, findings)
+    if any(run.cfg.env.domain == GRID_DOMAIN for run in runs):
+        matrices = {run.path: coverage_matrix(run, coverage[run.path], findings) for run in runs}
+        sections += [coverage_table(groups, coverage),
+                     metrics_table(groups, matrices, "metrics", "Continual-learning metrics (from coverage)",
+                                    "coverage accuracy in the room of task j")]
+    retention = {run.path: retention_rows(run, findings) for run in runs}  # DeepMind Control runs only
+    if any(retention.values()):
+        sections += retention_tables(groups, retention)
+        matrices = {path: retention_score_matrix(rows) for path, rows in retention.items()}
+        sections.append(metrics_table(
+            groups, matrices, "retention-metrics", "Continual-learning metrics (from held-out retention)",
+            "the world model's prediction score −log(MSE + ε) on the held-out transitions of task j"))
+    heatmap = heatmap_figure(groups)
+    if heatmap is not None:
+        sections.append(Figure("heatmap", "World-model prediction score", "Per-cell prediction score of the "
+                               "world model after each stage (rows: methods, columns: stages), the mean of "
+                               "−log(MSE + ε) over the cell's 4 headings × 3 actions, averaged over seeds; "
+                               "light = well predicted, one colour scale for all panels, walls and blocks "
+                               "grey. The stage's task start (○) and goal (★) are marked; a red × is a cell "
+                               "with a non-finite prediction.", heatmap, HEATMAP_PNG))
+    if transfers:
+        cases = sorted({run.case for run in transfers})
+        blocks = {run.path: transfer_block(run) for run in transfers}
+        sections += transfer_tables(tgroups, cases, blocks)
+        sections.append(training_table(tgroups, cases))
+        sections += relearning_metrics(groups, transfers, blocks, findings)
+        transfer_curves = transfer_png(tgroups, cases, colours)
+        if transfer_curves is not None:
+            sections.append(Figure("transfer-curves", "Transfer learning curves", "Evaluation return on each test "
+                                   "case (columns) as a fraction of the DP optimum (grid) or raw return (DeepMind "
+                                   "Control), against the learner's env steps (top) and the total env steps, "
+                                   "learner plus reviewer (bottom): the mean over seeds with its 95% bootstrap CI "
+                                   "as a band (no band for a single seed).", transfer_curves, TRANSFER_PNG))
+        transfer_gaps(groups, tgroups, cases, blocks, findings)
+    find_gaps(groups, tasks, findings)
+    sections.append(Notes("missing", "Missing", "What these runs do not (yet) provide.",
+                          findings.missing or ["Nothing: every run finished every task of its sequence, "
+                                               "and every method has the same number of seeds."]))
+    if findings.notes:
+        sections.append(Notes("notes", "Notes", "How the numbers above were obtained.", findings.notes))
+
+    seeds = ", ".join(f"{label}: {len(r)} run{'s' if len(r) != 1 else ''}" for label, r in groups.items())
+    meta = f"Generated {datetime.now().strftime('%Y-%m-%d %H:%M')} from {len(runs)} run directories ({seeds or 'none'})"
+    meta += f" and {len(transfers)} transfer run{'s' * (len(transfers) != 1)}." if transfers else "."
+    title = "DRAGO report"
+    out = Path(out_dir)
+    html_path, md_path = out / REPORT_HTML, out / REPORT_MD
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG):
+            (out / figure_file).unlink(missing_ok=True)  # a figure from an earlier report must not linger
+        for section in sections:
+            if isinstance(section, Figure):
+                (out / section.filename).write_bytes(section.png)
+        html_path.write_text(render_html(title, meta, sections), encoding="utf-8")
+        md_path.write_text(render_markdown(title, meta, sections), encoding="utf-8")
+    except OSError as err:
+        raise ReportError(f"cannot write the report into {out} ({err.strerror or err})") from None
+    return html_path, md_path

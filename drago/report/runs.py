@@ -1,0 +1,208 @@
+"""Reading run directories for a report: which runs a path names, and what each one holds."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from drago.config import Config
+from drago.envs.tasks import GRID_TASKS
+from drago.eval.coverage import (
+    GRID_DOMAIN,
+    room_of,
+)
+from drago.train.rundir import CONFIG_FILE, TRANSFER_FOLDER, RunDirError, read_run_config, read_summary
+
+EVAL_FILE = "eval.csv"
+FRACTION_LABEL = "fraction of DP optimum"
+RETURN_LABEL = "return"
+EVAL_COLUMNS = ("task", "env_step", "fraction_of_optimal")
+
+
+class ReportError(RunDirError):
+    """A run or path a report cannot use; the message is one line (the CLI prints it, exit 2)."""
+
+
+def find_run_dirs(paths: Iterable[str | Path]) -> list[Path]:
+    """Run directories named by ``paths``: each path is a run (it has ``config.yaml``) or a folder
+    whose run directories below it are taken, in sorted order. The search does not look inside a run
+    directory: what lies there (``transfer/`` runs) is another kind of experiment, which
+    :func:`find_transfer_dirs` finds. Duplicates are dropped.
+
+    Raises:
+        ReportError: A path that does not exist, or is neither a run nor holds one.
+    """
+    found: list[Path] = []
+    for raw in paths:
+        path = Path(raw)
+        if not path.exists():
+            raise ReportError(f"{path} does not exist")
+        if (path / CONFIG_FILE).is_file():
+            below = [path]
+        elif path.is_dir():
+            below = []
+            for folder, subfolders, files in os.walk(path):
+                if CONFIG_FILE in files:
+                    below.append(Path(folder))
+                    subfolders.clear()
+                else:
+                    subfolders.sort()
+            if not below:
+                raise ReportError(f"{path} is not a drago run directory (no {CONFIG_FILE}) and holds none below it")
+        else:
+            raise ReportError(f"{path} is not a drago run directory (no {CONFIG_FILE})")
+        found.extend(p for p in below if p not in found)
+    if not found:
+        raise ReportError("no run directories given")
+    return found
+
+
+def find_transfer_dirs(run_dir: Path) -> list[Path]:
+    """The transfer runs a run directory holds (``RUN_DIR/transfer/*/config.yaml``), in sorted order."""
+    return sorted(config.parent for config in (Path(run_dir) / TRANSFER_FOLDER).glob(f"*/{CONFIG_FILE}"))
+
+
+@dataclass
+class Run:
+    """What a report needs from one run directory.
+
+    Attributes:
+        path: The run directory.
+        cfg: Its resolved config.
+        summary: ``summary.json``, or None before the first task finished.
+        eval_rows: Rows of ``eval.csv`` (empty if absent).
+        label: The method group the run is reported under (set once all runs are known).
+    """
+
+    path: Path
+    cfg: Config
+    summary: dict[str, Any] | None
+    eval_rows: list[dict[str, str]]
+    label: str = ""
+
+    @property
+    def method(self) -> str:
+        return self.cfg.method.name
+
+    @property
+    def seed(self) -> int:
+        return int(self.cfg.train.seed)
+
+    @property
+    def planned(self) -> list[str]:
+        return list(self.cfg.env.tasks)
+
+    @property
+    def finished(self) -> dict[str, dict[str, Any]]:
+        """Summary entries of the finished tasks, by task name."""
+        return {task["name"]: task for task in (self.summary or {}).get("tasks", [])}
+
+    @property
+    def complete(self) -> bool:
+        return len(self.finished) == len(self.planned)
+
+    @property
+    def is_transfer(self) -> bool:
+        """A transfer run (a test task learned from another run's checkpoint), not a continual sequence."""
+        return self.cfg.transfer.checkpoint is not None
+
+    @property
+    def case(self) -> tuple[str, int]:
+        """A transfer's test case: (test task, as the catalogue names it, stage K)."""
+        return self.cfg.transfer.case or self.cfg.env.tasks[0], int(self.cfg.transfer.after or 0)
+
+
+def _read_eval(path: Path, required: Sequence[str] = EVAL_COLUMNS) -> list[dict[str, str]]:
+    file = path / EVAL_FILE
+    if not file.exists():
+        return []
+    try:
+        with file.open(newline="") as handle:
+            reader = csv.DictReader(handle)
+            rows = list(reader)
+            columns = reader.fieldnames or []
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise ReportError(f"{file} is not a readable CSV file ({err})") from None
+    missing = [c for c in required if c not in columns]
+    if missing:
+        raise ReportError(f"{file} lacks the column(s) {', '.join(missing)}")
+    return rows
+
+
+def read_run(path: str | Path) -> Run:
+    """Read one run directory.
+
+    Raises:
+        ReportError: No ``config.yaml``, or an unreadable summary or eval file.
+        drago.config.ConfigError: An invalid ``config.yaml``.
+    """
+    path = Path(path)
+    try:
+        cfg = read_run_config(path)
+    except OSError as err:
+        raise ReportError(f"{path / CONFIG_FILE} is not readable ({err.strerror or err})") from None
+    # DeepMind Control tasks have no known optimum, so their eval.csv has no fraction_of_optimal.
+    required = EVAL_COLUMNS if cfg.env.domain == GRID_DOMAIN else EVAL_COLUMNS[:2]
+    return Run(path=path, cfg=cfg, summary=read_summary(path, ReportError), eval_rows=_read_eval(path, required))
+
+
+def as_number(value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _method(run: Run) -> str:
+    """The method a run is reported under: a transfer learned without the method's extras is its own."""
+    return f"{run.method} (learner only)" if run.is_transfer and run.cfg.transfer.learner_only else run.method
+
+
+def label_runs(runs: list[Run]) -> dict[str, list[Run]]:
+    """Group runs by method, in order of first appearance; a method run under several presets is
+    split by preset, since their budgets differ and averaging them would mean nothing."""
+    presets: dict[str, set[str]] = {}
+    for run in runs:
+        presets.setdefault(_method(run), set()).add(run.cfg.preset)
+    groups: dict[str, list[Run]] = {}
+    for run in runs:
+        method = _method(run)
+        run.label = method if len(presets[method]) == 1 else f"{method} [{run.cfg.preset}]"
+        groups.setdefault(run.label, []).append(run)
+    return groups
+
+
+def task_order(runs: Sequence[Run]) -> list[str]:
+    order: list[str] = []
+    for run in runs:
+        order.extend(t for t in run.planned if t not in order)
+    return order
+
+
+def task_room(name: str) -> str | None:
+    """The room a task lives in (start and goal in the same room), else None (e.g. transfer tasks)."""
+    task = GRID_TASKS.get(name)
+    if task is None:
+        return None
+    start, goal = room_of(task.start), room_of(task.goal)
+    return f"room{start}" if start is not None and start == goal else None
+
+
+Case = tuple[str, int]
+
+
+def case_name(case: Case) -> str:
+    return f"{case[0]} after {case[1]}"
+
+
+def quantity_of(rows: Iterable[dict[str, str]]) -> tuple[str, str]:
+    """The eval.csv column a curve shows and its axis label: the fraction of the optimum where the task
+    has one (the grid), else the raw return (DeepMind Control, whose tasks have no known optimum)."""
+    if any(math.isfinite(as_number(row.get("fraction_of_optimal"))) for row in rows):
+        return "fraction_of_optimal", FRACTION_LABEL
+    return "episode_reward", RETURN_LABEL

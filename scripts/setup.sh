@@ -56,3 +56,19 @@ if ! command -v chromium >/dev/null 2>&1; then
     apt_install chromium || true
     command -v chromium >/dev/null 2>&1 || echo "setup: could not install chromium (needs apt-get and root or password-less sudo); the report's browser test will be skipped"
 fi
+
+# --- SLURM test cluster (tests/slurm_cluster.py) ---------------------------------------------------------------------
+# The SLURM tests start a real one-node cluster on 127.0.0.1 from Debian's slurm-wlm (slurmctld, slurmd and the client
+# commands sbatch, squeue, scancel, sinfo) and munge (munged). Nothing is configured or started here: the test fixture
+# runs private daemons with its own key, socket, slurm.conf and ports. (Where systemd runs, the packages enable their own
+# munge / slurmctld / slurmd services; without an /etc/slurm/slurm.conf the SLURM ones do not start.)
+have_slurm() {
+    local p
+    for p in slurmctld slurmd sbatch squeue scancel sinfo munged; do
+        command -v "$p" >/dev/null 2>&1 || [ -x "/usr/sbin/$p" ] || return 1
+    done
+}
+if [ "$(uname -s)" = Linux ] && ! have_slurm; then
+    apt_install slurm-wlm munge || true
+    have_slurm || echo "setup: could not install slurm-wlm and munge (needs apt-get and root or password-less sudo); the SLURM cluster tests will be skipped"
+fi

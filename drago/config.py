@@ -44,35 +44,35 @@ class EnvConfig:
 class AgentConfig:
     """The TD-MPC agent as modified in DRAGO (paper §2; docs: Design, the agent)."""
 
-    mlp_dim: int = 512
+    mlp_dim: int = 512  # hidden width of every network (world model, heads, critics)
     use_crelu: bool = True  # CReLU dynamics as at the code's HEAD; the paper-era run used ELU (false)
     horizon: int = 10  # training and maximum planning horizon H
-    discount: float = 0.99
-    batch_size: int = 512
-    lr: float = 1e-3
+    discount: float = 0.99  # gamma of the TD targets and of the planner's returns
+    batch_size: int = 512  # sequences of H+1 steps per gradient step
+    lr: float = 1e-3  # Adam learning rate of every optimizer
     # None: a constant lr (paper and code). Otherwise every optimizer of a task decays linearly lr -> lr_final
     # over its first lr_schedule_steps task steps; optimizers start afresh with each task (paper §3.3; docs: Design, how a run flows).
     lr_final: float | None = None
     lr_schedule_steps: int = 300_000
     rho: float = 0.5  # temporal weight of the t-th loss term
-    consistency_coef: float = 2.0
-    reward_coef: float = 0.5
-    value_coef: float = 0.1
-    grad_clip_norm: float = 10.0
+    consistency_coef: float = 2.0  # weight of the latent consistency loss
+    reward_coef: float = 0.5  # weight of the reward loss
+    value_coef: float = 0.1  # weight of the TD value loss
+    grad_clip_norm: float = 10.0  # gradient norm clip of every update
     tau: float = 0.01  # target EMA coefficient (the paper's table calls it "temperature")
     update_freq: int = 40  # target EMA every this many gradient steps
     first_step_qr_only: bool = False  # true: reward and value losses at t=0 only (code: DMC true, grid false)
-    per_alpha: float = 0.6
-    per_beta: float = 0.4
+    per_alpha: float = 0.6  # prioritized replay: priority exponent
+    per_beta: float = 0.4  # prioritized replay: importance-weight exponent
     # Planning (paper §2; docs: Design, the agent).
-    iterations: int = 6
-    num_samples: int = 512
-    num_elites: int = 64
+    iterations: int = 6  # CEM iterations per planned action
+    num_samples: int = 512  # action sequences sampled per CEM iteration
+    num_elites: int = 64  # best sequences that refit the CEM distribution
     mixture_coef: float = 0.05  # fraction of policy trajectories added to the sampled ones
-    temperature: float = 0.5
-    momentum: float = 0.1
-    min_std: float = 0.05
-    max_std: float = 2.0
+    temperature: float = 0.5  # softmax temperature of the elites' weights
+    momentum: float = 0.1  # weight of the previous CEM mean in each refit
+    min_std: float = 0.05  # final CEM std floor (see std_schedule_start)
+    max_std: float = 2.0  # initial CEM std of continuous actions
     use_q: bool = True  # terminal Q value in the planner's return
     elite_selection: str = "sample"  # code: sample an elite in proportion to its weight; paper: argmax
     horizon_schedule_steps: int = 10_000  # planning horizon grows linearly 1 -> H over these task steps
@@ -80,12 +80,12 @@ class AgentConfig:
     std_schedule_steps: int = 50_000
     seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
     random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)  # grid seed-phase (left, right, forward)
-    # Speed (README "Speed and precision"). bfloat16: autocast of the networks' hidden layers in updates
+    # Speed (docs: Speed and precision). bfloat16: autocast of the networks' hidden layers in updates
     # and planning; output layers, losses, TD targets and optimizer state stay float32.
     precision: str = "float32"  # float32 or bfloat16
     compile: bool = False  # torch.compile the update's losses and the planner's per-step evaluation
     # The heads' tanh (critics, policy mean) as 2*sigmoid(2x) - 1: within 3e-7 of torch.tanh, faster on
-    # CPUs where torch.tanh is not vectorised (README "Speed and precision"); off keeps runs bit-identical.
+    # CPUs where torch.tanh is not vectorised (docs: Speed and precision); off keeps runs bit-identical.
     fast_tanh: bool = False
 
 
@@ -102,32 +102,32 @@ class TrainConfig:
     eval_freq: int = 10_000  # evaluate every this many env steps of a task (and at its start and end)
     # Evaluate every this many learner episodes instead (eval_freq is then unused); transfer runs use it.
     eval_every_episodes: int | None = None
-    eval_episodes: int = 10
+    eval_episodes: int = 10  # episodes of each evaluation, played side by side
     checkpoint_freq: int = 50_000  # periodic resumable checkpoint every this many env steps
     # DMC only: at the end of each task, episodes of the final learner (eval mode, own seeds and env) whose
     # transitions are saved to heldout/task<k>_<name>.npz, never trained on; `drago eval heldout` scores every
     # stage's world model on them (the retention matrix). 0: none.
     heldout_episodes: int = 4
-    seed: int = 1
+    seed: int = 1  # the run's seed: same seed, same CPU, same logs
     device: str = "cpu"  # cpu, cuda, cuda:N
     threads: int = 0  # torch intra-op threads; 0: all cores
-    tensorboard: bool = True
+    tensorboard: bool = True  # also write TensorBoard events (the CSV logs are always written)
 
 
 @dataclass
 class MethodConfig:
     """The continual-learning method and the settings of every method (each reads only its own)."""
 
-    name: str = "continual"
+    name: str = "continual"  # the method (`drago list` shows them)
     # -- DRAGO: generative model over (observation, action) (paper §3.1) --
     vae_hidden_dim: int = 64  # code: 64 grid, 256 DMC (the paper's "vae latent dim")
-    vae_latent_dim: int = 64
-    vae_recon_coef: float = 1.0
+    vae_latent_dim: int = 64  # latent width of the VAE
+    vae_recon_coef: float = 1.0  # weight of the VAE's reconstruction term
     vae_kl_coef: float = 1.0  # code: 1.0 grid, 0.02 DMC; the paper's table says 0.02
     vae_data: str = "combined"  # combined: reviewer + learner rows (code); learner: learner rows only (paper Alg. 3)
     # -- DRAGO: synthetic rehearsal (paper §3.1) --
     rehearsal_freq: int = 1  # every this many gradient steps (code: 1 grid, 10 DMC; paper: 10, 20)
-    rehearsal_batch: int = 512
+    rehearsal_batch: int = 512  # generated (observation, action) pairs per rehearsal step
     rehearsal_mode: str = "separate"  # separate: own optimizer step of weight 1 (code); joint: lambda-weighted term (paper)
     rehearsal_lambda: float = 1.0  # weight of the rehearsal term in joint mode
     rehearsal_target: str = "pre_squash"  # pre_squash: raw MLP outputs (code); post_squash: as the planner sees them
@@ -371,112 +371,117 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
     return value
 
 
+# ---- validation -------------------------------------------------------------------------------------
+# Range rules as data: each key once, each rule with one message.
+POSITIVE = (
+    "env.episode_length", "env.action_repeat", "agent.mlp_dim", "agent.horizon", "agent.batch_size",
+    "agent.iterations", "agent.num_samples", "agent.num_elites", "agent.update_freq", "agent.horizon_schedule_steps",
+    "agent.std_schedule_steps", "agent.lr", "agent.lr_schedule_steps", "train.steps_per_task", "train.eval_freq",
+    "train.eval_episodes", "train.checkpoint_freq", "method.vae_hidden_dim", "method.vae_latent_dim",
+    "method.rehearsal_freq", "method.rehearsal_batch", "method.ewc_fisher_batches", "method.replay_capacity",
+    "transfer.few_shot_episodes",
+)
+POSITIVE_OR_UNSET = ("train.learner_steps_per_task", "train.reviewer_steps_per_task", "train.eval_every_episodes",
+                     "transfer.after")
+NON_NEGATIVE = (
+    "agent.seed_steps", "train.threads", "train.heldout_episodes", "transfer.pre_rollout_steps",
+    "method.vae_recon_coef", "method.vae_kl_coef", "method.rehearsal_lambda", "method.cost_coef", "method.ewc_coef",
+    "method.curiosity_coef",
+)
+NON_NEGATIVE_OR_UNSET = ("train.updates_per_episode",)
+UNIT_INTERVAL = ("agent.discount", "agent.rho", "agent.tau", "agent.momentum", "agent.mixture_coef",
+                 "method.threshold_momentum")
+CHOICES: dict[str, tuple[str, ...]] = {
+    "agent.elite_selection": ELITE_SELECTIONS,
+    "agent.precision": PRECISIONS,
+    "method.vae_data": ("combined", "learner"),
+    "method.rehearsal_mode": ("separate", "joint"),
+    "method.rehearsal_target": ("pre_squash", "post_squash"),
+    "method.intrinsic_reward": ("code", "paper"),
+    "transfer.pre_rollout_planning": PRE_ROLLOUT_PLANNING,
+}
+
+
+def _get(cfg: Config, key: str) -> Any:
+    section, _, name = key.partition(".")
+    return getattr(getattr(cfg, section), name)
+
+
+def _check_ranges(cfg: Config) -> None:
+    for key in POSITIVE + POSITIVE_OR_UNSET:
+        value = _get(cfg, key)
+        if value is not None and value <= 0:
+            raise ConfigError(f"setting '{key}' must be positive, got {value}")
+    for key in NON_NEGATIVE + NON_NEGATIVE_OR_UNSET:
+        value = _get(cfg, key)
+        if value is not None and value < 0:
+            raise ConfigError(f"setting '{key}' must be >= 0, got {value}")
+    for key in UNIT_INTERVAL:
+        value = _get(cfg, key)
+        if not 0.0 <= value <= 1.0:
+            raise ConfigError(f"setting '{key}' must lie in [0, 1], got {value}")
+    for key, valid in CHOICES.items():
+        if _get(cfg, key) not in valid:
+            raise ConfigError(f"unknown {key} '{_get(cfg, key)}'; valid choices: {', '.join(valid)}")
+
+
+def _check_domain_and_tasks(cfg: Config) -> None:
+    env = cfg.env
+    if env.domain not in DOMAINS:
+        raise ConfigError(f"unknown domain '{env.domain}'; valid domains: {', '.join(DOMAINS)}")
+    if env.domain == "minigrid" and env.action_repeat != 1:
+        raise ConfigError(f"setting 'env.action_repeat' must be 1 for the grid, got {env.action_repeat}")
+    if env.domain != "minigrid" and env.dense_reward is not None:
+        raise ConfigError(f"setting 'env.dense_reward' applies to the grid only; leave it unset for {env.domain}")
+    if env.domain != "minigrid" and importlib.util.find_spec("dm_control") is None:
+        raise ConfigError(f"domain {env.domain} needs dm_control, which is not installed: "
+                          "pip install -e '.[dmc]' (scripts/setup.sh installs it)")
+    if not env.tasks:
+        raise ConfigError("env.tasks is empty; name at least one task")
+    valid_tasks = available_tasks(env.domain)
+    for task in env.tasks:
+        if task not in valid_tasks:
+            raise ConfigError(f"unknown task '{task}' for domain {env.domain}; valid tasks: " + ", ".join(valid_tasks))
+    if cfg.transfer.pre_rollout_checkpoint is not None and env.domain == "minigrid":
+        raise ConfigError("setting 'transfer.pre_rollout_checkpoint' applies to DeepMind Control test tasks, "
+                          "not to the grid")
+
+
+def _check_relations(cfg: Config) -> None:
+    """Rules that tie two settings together."""
+    agent, train = cfg.agent, cfg.train
+    if agent.lr_final is not None and not 0 < agent.lr_final <= agent.lr:
+        raise ConfigError(f"setting 'agent.lr_final' must lie in (0, agent.lr={agent.lr}], got {agent.lr_final}; "
+                          "leave it unset (null) for a constant lr")
+    if train.reviewer_steps_per_task is not None and train.learner_steps_per_task is None:
+        raise ConfigError("train.reviewer_steps_per_task needs train.learner_steps_per_task (separate budgets); "
+                          "without it both share train.steps_per_task")
+    if agent.num_elites > agent.num_samples:
+        raise ConfigError(f"agent.num_elites ({agent.num_elites}) must not exceed agent.num_samples "
+                          f"({agent.num_samples})")
+    if cfg.env.episode_length <= agent.horizon:
+        raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must exceed agent.horizon "
+                          f"({agent.horizon}) so that training sequences fit inside an episode")
+    probs = agent.random_action_probs
+    if len(probs) != 3 or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
+        raise ConfigError(f"agent.random_action_probs must be three non-negative numbers summing to 1, got {probs}")
+    if not 0.0 <= cfg.method.replay_fraction < 1.0:
+        # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
+        raise ConfigError(f"setting 'method.replay_fraction' must lie in [0, 1), got {cfg.method.replay_fraction}")
+    device = train.device
+    if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
+        raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")
+
+
 def validate(cfg: Config) -> None:
     """Check ranges and names once, so nothing fails an hour into a run.
 
     The method's name is checked where methods are known (:func:`drago.continual.check_method`): settings
     sit below the methods that read them.
     """
-    if cfg.env.domain not in DOMAINS:
-        raise ConfigError(f"unknown domain '{cfg.env.domain}'; valid domains: {', '.join(DOMAINS)}")
-    if cfg.env.domain == "minigrid" and cfg.env.action_repeat != 1:
-        raise ConfigError(f"setting 'env.action_repeat' must be 1 for the grid, got {cfg.env.action_repeat}")
-    if cfg.env.domain != "minigrid" and cfg.env.dense_reward is not None:
-        raise ConfigError(f"setting 'env.dense_reward' applies to the grid only; leave it unset for {cfg.env.domain}")
-    if cfg.env.domain != "minigrid" and importlib.util.find_spec("dm_control") is None:
-        raise ConfigError(f"domain {cfg.env.domain} needs dm_control, which is not installed: "
-                          "pip install -e '.[dmc]' (scripts/setup.sh installs it)")
-    if not cfg.env.tasks:
-        raise ConfigError("env.tasks is empty; name at least one task")
-    valid_tasks = available_tasks(cfg.env.domain)
-    for task in cfg.env.tasks:
-        if task not in valid_tasks:
-            raise ConfigError(f"unknown task '{task}' for domain {cfg.env.domain}; valid tasks: "
-                              + ", ".join(valid_tasks))
-    positive = {
-        "env.episode_length": cfg.env.episode_length, "env.action_repeat": cfg.env.action_repeat,
-        "agent.mlp_dim": cfg.agent.mlp_dim, "agent.horizon": cfg.agent.horizon,
-        "agent.batch_size": cfg.agent.batch_size, "agent.iterations": cfg.agent.iterations,
-        "agent.num_samples": cfg.agent.num_samples, "agent.num_elites": cfg.agent.num_elites,
-        "agent.update_freq": cfg.agent.update_freq, "agent.horizon_schedule_steps": cfg.agent.horizon_schedule_steps,
-        "agent.std_schedule_steps": cfg.agent.std_schedule_steps,
-        "train.steps_per_task": cfg.train.steps_per_task, "train.eval_freq": cfg.train.eval_freq,
-        "train.eval_episodes": cfg.train.eval_episodes, "train.checkpoint_freq": cfg.train.checkpoint_freq,
-        "agent.lr": cfg.agent.lr, "agent.lr_schedule_steps": cfg.agent.lr_schedule_steps,
-    }
-    for key, value in positive.items():
-        if value <= 0:
-            raise ConfigError(f"setting '{key}' must be positive, got {value}")
-    if cfg.agent.lr_final is not None and not 0 < cfg.agent.lr_final <= cfg.agent.lr:
-        raise ConfigError(f"setting 'agent.lr_final' must lie in (0, agent.lr={cfg.agent.lr}], got {cfg.agent.lr_final}; "
-                          "leave it unset (null) for a constant lr")
-    for key in ("learner_steps_per_task", "reviewer_steps_per_task", "eval_every_episodes"):
-        value = getattr(cfg.train, key)
-        if value is not None and value <= 0:
-            raise ConfigError(f"setting 'train.{key}' must be positive, got {value}")
-    if cfg.train.reviewer_steps_per_task is not None and cfg.train.learner_steps_per_task is None:
-        raise ConfigError("train.reviewer_steps_per_task needs train.learner_steps_per_task (separate budgets); "
-                          "without it both share train.steps_per_task")
-    if cfg.train.updates_per_episode is not None and cfg.train.updates_per_episode < 0:
-        raise ConfigError(f"setting 'train.updates_per_episode' must be >= 0, got {cfg.train.updates_per_episode}")
-    if cfg.train.threads < 0:
-        raise ConfigError(f"setting 'train.threads' must be >= 0, got {cfg.train.threads}")
-    for key in ("seed_steps",):
-        if getattr(cfg.agent, key) < 0:
-            raise ConfigError(f"setting 'agent.{key}' must be >= 0, got {getattr(cfg.agent, key)}")
-    if cfg.agent.num_elites > cfg.agent.num_samples:
-        raise ConfigError(f"agent.num_elites ({cfg.agent.num_elites}) must not exceed agent.num_samples "
-                          f"({cfg.agent.num_samples})")
-    if cfg.env.episode_length <= cfg.agent.horizon:
-        raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must exceed agent.horizon "
-                          f"({cfg.agent.horizon}) so that training sequences fit inside an episode")
-    for key in ("discount", "rho", "tau", "momentum", "mixture_coef"):
-        value = getattr(cfg.agent, key)
-        if not 0.0 <= value <= 1.0:
-            raise ConfigError(f"setting 'agent.{key}' must lie in [0, 1], got {value}")
-    if cfg.agent.elite_selection not in ELITE_SELECTIONS:
-        raise ConfigError(f"unknown agent.elite_selection '{cfg.agent.elite_selection}'; valid choices: "
-                          + ", ".join(ELITE_SELECTIONS))
-    if cfg.agent.precision not in PRECISIONS:
-        raise ConfigError(f"unknown agent.precision '{cfg.agent.precision}'; valid choices: " + ", ".join(PRECISIONS))
-    probs = cfg.agent.random_action_probs
-    if len(probs) != 3 or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
-        raise ConfigError(f"agent.random_action_probs must be three non-negative numbers summing to 1, got {probs}")
-    m = cfg.method
-    choices = {"vae_data": ("combined", "learner"), "rehearsal_mode": ("separate", "joint"),
-               "rehearsal_target": ("pre_squash", "post_squash"), "intrinsic_reward": ("code", "paper")}
-    for key, valid in choices.items():
-        if getattr(m, key) not in valid:
-            raise ConfigError(f"unknown method.{key} '{getattr(m, key)}'; valid choices: {', '.join(valid)}")
-    for key in ("vae_hidden_dim", "vae_latent_dim", "rehearsal_freq", "rehearsal_batch", "ewc_fisher_batches",
-                "replay_capacity"):
-        if getattr(m, key) <= 0:
-            raise ConfigError(f"setting 'method.{key}' must be positive, got {getattr(m, key)}")
-    for key in ("vae_recon_coef", "vae_kl_coef", "rehearsal_lambda", "cost_coef", "ewc_coef", "curiosity_coef"):
-        if getattr(m, key) < 0:
-            raise ConfigError(f"setting 'method.{key}' must be >= 0, got {getattr(m, key)}")
-    if not 0.0 <= m.threshold_momentum <= 1.0:
-        raise ConfigError(f"setting 'method.threshold_momentum' must lie in [0, 1], got {m.threshold_momentum}")
-    if not 0.0 <= m.replay_fraction < 1.0:
-        # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
-        raise ConfigError(f"setting 'method.replay_fraction' must lie in [0, 1), got {m.replay_fraction}")
-    if cfg.transfer.after is not None and cfg.transfer.after <= 0:
-        raise ConfigError(f"setting 'transfer.after' must be positive, got {cfg.transfer.after}")
-    if cfg.transfer.few_shot_episodes <= 0:
-        raise ConfigError(f"setting 'transfer.few_shot_episodes' must be positive, got {cfg.transfer.few_shot_episodes}")
-    if cfg.transfer.pre_rollout_steps < 0:
-        raise ConfigError(f"setting 'transfer.pre_rollout_steps' must be >= 0, got {cfg.transfer.pre_rollout_steps}")
-    if cfg.transfer.pre_rollout_planning not in PRE_ROLLOUT_PLANNING:
-        raise ConfigError(f"unknown transfer.pre_rollout_planning '{cfg.transfer.pre_rollout_planning}'; valid "
-                          f"choices: {', '.join(PRE_ROLLOUT_PLANNING)}")
-    if cfg.transfer.pre_rollout_checkpoint is not None and cfg.env.domain == "minigrid":
-        raise ConfigError("setting 'transfer.pre_rollout_checkpoint' applies to DeepMind Control test tasks, "
-                          "not to the grid")
-    if cfg.train.heldout_episodes < 0:
-        raise ConfigError(f"setting 'train.heldout_episodes' must be >= 0, got {cfg.train.heldout_episodes}")
-    device = cfg.train.device
-    if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
-        raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")
+    _check_domain_and_tasks(cfg)
+    _check_ranges(cfg)
+    _check_relations(cfg)
 
 
 def _to_plain(value: Any) -> Any:

@@ -50,9 +50,8 @@ def _float32_output(x: torch.Tensor, layer) -> torch.Tensor:
 def _tanh_from_sigmoid(x: torch.Tensor) -> torch.Tensor:
     """tanh(x) = 2·sigmoid(2x) − 1.
 
-    torch 2.13's CPU tanh does not vectorise on every machine: on the AMD EPYC of the README's
-    benchmarks it costs 14x a sigmoid, and the critics' tanh and its backward are about a tenth of a
-    width-128 update. The identity agrees with ``torch.tanh`` to 3e-7, but not bit for bit.
+    torch's CPU tanh does not vectorise on every machine, where it costs many times a sigmoid (docs:
+    Benchmarks). The identity agrees with ``torch.tanh`` to 3e-7, but not bit for bit.
     """
     return torch.sigmoid(x * 2).mul_(2).sub_(1)
 

@@ -33,7 +33,7 @@ def keep_freed_memory() -> bool:
     to the kernel. The networks allocate and free the same large activations on every call, so each one
     came as new pages that the kernel zero-fills on first touch. At width 512 that was 180,000 page faults
     per planned action and 100,000-180,000 per DRAGO gradient step: a third of the planner's CPU time when
-    two jobs shared the cores, 8-14% of a DRAGO step on an idle machine (README, "Speed and precision").
+    two jobs shared the cores, 8-14% of a DRAGO step on an idle machine (docs: Speed and precision).
     With no mmaps and no trimming, both counts drop to zero; the price is a peak resident memory about 13%
     higher, since freed memory stays with the process until it exits.
 

@@ -57,7 +57,7 @@ TransferCase = tuple[str, int]  # (test task, stage K)
 PAPER_CASES: dict[str, tuple[TransferCase, ...]] = {
     "minigrid": (("room1to2", 2), ("room1to3", 3), ("room1to3", 4), ("room3to4", 4)),
     **{domain: tuple((t.name, t.stage) for t in DMC_TRANSFER_TASKS.values() if t.domain == domain)
-       for domain in ("cheetah", "walker")},
+       for domain in dict.fromkeys(t.domain for t in DMC_TRANSFER_TASKS.values())},
 }
 DMC_TRANSFER_TASKS_DOMAINS = frozenset(t.domain for t in DMC_TRANSFER_TASKS.values())
 

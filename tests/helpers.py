@@ -2,9 +2,20 @@
 
 from __future__ import annotations
 
+import csv
+from pathlib import Path
+
 import numpy as np
 
 from drago.agent.buffer import EpisodeReplay
+
+#: How the tests start runs: no progress bar, no TensorBoard files.
+QUIET = ["--no-progress", "train.tensorboard=false"]
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with Path(path).open(newline="") as handle:
+        return list(csv.DictReader(handle))
 
 
 def filled_buffer(device_priorities: bool, obs_dim: int = 3, act_dim: int = 2, horizon: int = 3,

@@ -29,10 +29,10 @@ from drago.continual.ewc import EWC, consistency_loss, ewc_penalty, fisher_diago
 from drago.continual.replay import Replay, ReservoirBuffer, replay_loss, replay_weight, stored_transitions
 from drago.envs import env_spec
 from drago.train.checkpoint import load_checkpoint, save_checkpoint
+from helpers import QUIET
 
 OBS, ACT, H, MLP = 3, 3, 3, 16
 TASKS = ("room1", "room2", "room3", "room4")
-QUIET = ["--no-progress", "train.tensorboard=false"]
 
 
 def make_world(seed: int = 0) -> WorldModel:
@@ -422,15 +422,13 @@ EXTRA = {"replay": ["method.replay_capacity=500"]}  # below 4 x 400 transitions:
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(smoke_runs):
     """One complete smoke run per method, made on first use and shared by the tests."""
     cache: dict[str, Path] = {}
 
     def get(method: str) -> Path:
         if method not in cache:
-            out = tmp_path_factory.mktemp(method) / "run"
-            assert cli.main(["train", "smoke", "--method", method, "--out", str(out), *QUIET, *EXTRA.get(method, [])]) == 0
-            cache[method] = out
+            cache[method] = smoke_runs(method, *EXTRA.get(method, []))
         return cache[method]
 
     return get

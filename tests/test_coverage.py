@@ -5,7 +5,6 @@ One smoke run (four tasks of 400 agent steps, a few seconds) is shared by the mo
 
 from __future__ import annotations
 
-import csv
 import subprocess
 import sys
 from pathlib import Path
@@ -34,17 +33,15 @@ from drago.eval.coverage import (
     room_of,
 )
 from drago.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from helpers import read_csv
 
 TASKS = ("room1", "room2", "room3", "room4")
 N_TRANSITIONS = 561 * 4 * 3
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory) -> Path:
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("coverage") / "run"
-    assert cli.main(["train", "smoke", "--out", str(out), "--no-progress", "train.tensorboard=false"]) == 0
-    return out
+def smoke_run(smoke_runs) -> Path:
+    return smoke_runs("continual")
 
 
 def task_checkpoint(run: Path, index: int) -> Path:
@@ -243,11 +240,6 @@ def test_load_world_model_refuses_bad_checkpoints(smoke_run, tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # drago eval coverage
 # ---------------------------------------------------------------------------------------------------
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
-
-
 def test_eval_coverage_writes_csv(smoke_run, tmp_path, capsys):
     combined = tmp_path / "all.csv"
     assert cli.main(["eval", "coverage", str(smoke_run), "--out", str(combined)]) == 0

@@ -163,11 +163,8 @@ def test_grid_count_bonus_closed_form():
 
 
 @pytest.fixture(scope="module")
-def drago_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("drago") / "run"
-    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
-                     "train.tensorboard=false"]) == 0
-    return out
+def drago_run(smoke_runs):
+    return smoke_runs("drago")
 
 
 def test_task_checkpoint_carries_world_model_vae_and_threshold_only(drago_run):

@@ -5,7 +5,6 @@ One smoke run (four tasks of 400 agent steps) takes a few seconds; the module sh
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import signal
@@ -26,9 +25,9 @@ from drago.continual import METHODS
 from drago.continual.naive import Continual, Scratch
 from drago.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from drago.train.resources import keep_freed_memory
+from helpers import QUIET, read_csv
 
 TASKS = ("room1", "room2", "room3", "room4")
-QUIET = ["--no-progress", "train.tensorboard=false"]
 DRAGO = Path(sys.executable).parent / "drago"
 
 
@@ -37,20 +36,13 @@ def train(out: Path, *extra: str) -> int:
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> Path:
+def reference(smoke_runs) -> Path:
     """A complete smoke run with seed 1 (the preset's), uninterrupted."""
-    out = tmp_path_factory.mktemp("reference") / "run"
-    assert train(out) == 0
-    return out
+    return smoke_runs("continual")
 
 
 def task_checkpoints(run: Path) -> list[Path]:
     return [run / "checkpoints" / f"task{i + 1}_{name}.pt" for i, name in enumerate(TASKS)]
-
-
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
 
 
 def all_keys(value, prefix="") -> list[str]:

@@ -5,7 +5,6 @@ Sources are tiny `smoke` runs; transfers last one to three episodes of 100 steps
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import json
 from pathlib import Path
@@ -23,14 +22,9 @@ from drago.continual.drago import Drago
 from drago.envs import task_optimum
 from drago.train.checkpoint import load_checkpoint
 from drago.train.transfer import PAPER_CASES
+from helpers import QUIET, read_csv
 
-QUIET = ["--no-progress", "train.tensorboard=false"]
 TWO_TASKS = "env.tasks=[room1,room2]"
-
-
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
 
 
 def transfer(source: Path, *args: str) -> int:
@@ -38,14 +32,9 @@ def transfer(source: Path, *args: str) -> int:
 
 
 @pytest.fixture(scope="module")
-def sources(tmp_path_factory) -> dict[str, Path]:
+def sources(smoke_runs) -> dict[str, Path]:
     """Two-task smoke runs of DRAGO and of continual TD-MPC."""
-    root = tmp_path_factory.mktemp("sources")
-    out = {}
-    for method in ("drago", "continual"):
-        out[method] = root / method
-        assert cli.main(["train", "smoke", "--method", method, "--out", str(out[method]), *QUIET, TWO_TASKS]) == 0
-    return out
+    return {method: smoke_runs(method, TWO_TASKS) for method in ("drago", "continual")}
 
 
 @pytest.fixture(scope="module")
@@ -239,9 +228,9 @@ def test_resume_after_a_crash_gives_the_uninterrupted_logs(sources, tmp_path, mo
     assert ours["few_shot"] == theirs["few_shot"] and ours["total_env_steps"] == theirs["total_env_steps"] == 600
 
 
-def test_paper_cases_run_in_turn_skip_finished_ones_and_resume_unfinished_ones(tmp_path, monkeypatch, capsys):
-    source = tmp_path / "source"
-    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(source), *QUIET]) == 0
+def test_paper_cases_run_in_turn_skip_finished_ones_and_resume_unfinished_ones(smoke_runs, tmp_path, monkeypatch,
+                                                                             capsys):
+    source = smoke_runs("drago")
     cases = [source / "transfer" / f"{task}-after{k}" for task, k in PAPER_CASES["minigrid"]]
     assert [c.name for c in cases] == ["room1to2-after2", "room1to3-after3", "room1to3-after4", "room3to4-after4"]
     args = ["--paper-cases", "--episodes", "2"]

@@ -1,17 +1,42 @@
-"""The public API: what ``import drago`` offers (``drago.load_config``, ``drago.load_world_model``, ...).
+"""The public API: what ``import drago`` offers, and all that the command line uses.
 
 ``import drago`` itself stays fast: the package reaches these names on first use (PEP 562), so torch and
-the trainer are loaded only when something needs them.
+the trainer are loaded only when something needs them. Example (docs: Extending drago)::
+
+    import drago
+
+    cfg = drago.load_config("smoke", ["env.tasks=[room1,room2]"], method="drago")
+    run = drago.train(cfg, out="runs/demo")           # trains; returns a drago.Run
+    print(run.tasks[-1]["final_eval_return"])
+    rows = drago.coverage(run.path)                    # grid: world-model accuracy per room and stage
+    drago.build_report([run.path], "reports/demo")
 """
 
 from __future__ import annotations
 
-from drago.config import Config
-from drago.config import load_config as _load_settings
-from drago.continual import check_method
-from drago.eval.predictor import WorldModelPredictor, load_world_model
+from pathlib import Path
 
-__all__ = ["WorldModelPredictor", "load_config", "load_world_model"]
+from drago.config import Config, ConfigError, available_presets, describe_settings
+from drago.config import load_config as _load_settings
+from drago.continual import ContinualMethod, TaskState, available_methods, check_method, methods, plugin_problems
+from drago.continual.registry import RegistryError, register_method
+from drago.eval.coverage import coverage_of_run as coverage
+from drago.eval.heldout import retention_matrix
+from drago.eval.predictor import WorldModelPredictor, load_world_model
+from drago.report import ReportError, build_report
+from drago.train.checkpoint import CheckpointError
+from drago.train.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
+from drago.train.rundir import RunDirError
+from drago.train.runs import Run
+from drago.train.trainer import Trainer
+
+__all__ = [
+    "CheckpointError", "Config", "ConfigError", "ContinualMethod", "RegistryError", "ReportError", "Run",
+    "RunDirError", "TaskState", "Trainer", "WorldModelPredictor", "available_methods", "available_presets",
+    "build_report", "coverage", "default_run_dir", "describe_settings", "load_config", "load_world_model",
+    "methods", "new_run", "new_transfer", "plugin_problems", "register_method", "resume", "retention_matrix",
+    "run_paper_cases", "run_transfer", "train",
+]
 
 
 def load_config(preset: str, overrides: list[str] | None = None, method: str | None = None,
@@ -19,12 +44,35 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
     """A validated run config: a preset plus ``key=value`` overrides, with a method that exists.
 
     Args:
-        preset: a packaged preset's name (``drago list`` shows them).
+        preset: a packaged preset's name (``drago list`` shows them) or the path of a YAML file of the same
+            form, whose ``base:`` may name a packaged preset.
         overrides: strings ``section.key=value``, or ``key=value`` for a key unique across sections.
         method: shortcut for ``method.name=...``.
         seed: shortcut for ``train.seed=...``.
 
     Raises:
-        drago.config.ConfigError: one line naming the bad preset, key, value or method.
+        ConfigError: one line naming the bad preset, file and line, key, value or method.
     """
     return check_method(_load_settings(preset, overrides, method=method, seed=seed))
+
+
+def train(cfg: Config, out: str | Path | None = None, force: bool = False, progress: bool = True) -> Run:
+    """Train the config's task sequence into ``out`` (default ``runs/PRESET/METHOD/seedS``) and return the run.
+
+    An existing run directory is refused unless ``force``; continue an interrupted one with
+    :func:`resume` (``resume(path).run()``).
+
+    Raises:
+        RunDirError: an existing run directory; ConfigError: a bad config.
+    """
+    run_dir = Path(out) if out is not None else default_run_dir(cfg)
+    trainer = new_run(check_method(cfg), run_dir, force=force, progress=progress)
+    try:
+        trainer.run()
+    finally:
+        trainer.logger.close()
+    return Run(run_dir)
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -13,11 +13,14 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import os
 import re
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import yaml
@@ -192,7 +195,7 @@ class Config:
     def from_dict(cls, data: dict[str, Any]) -> Config:
         """Rebuild a config written by :meth:`to_dict` (for example a run's ``config.yaml``)."""
         cfg = cls()
-        _merge(cfg, data, prefix="")
+        _merge(cfg, data, "")
         validate(cfg)
         return cfg
 
@@ -213,30 +216,86 @@ def available_presets() -> list[str]:
     return sorted(p.name[: -len(".yaml")] for p in root.iterdir() if p.name.endswith(".yaml"))
 
 
-def _read_preset(name: str) -> dict[str, Any]:
-    presets = available_presets()
-    if name not in presets:
-        raise ConfigError(f"unknown preset '{name}'; valid presets: {', '.join(presets)}")
-    text = (resources.files("drago") / "presets" / f"{name}.yaml").read_text()
-    data = yaml.safe_load(text) or {}
+PRESET_SUFFIXES = (".yaml", ".yml")
+
+#: Where a preset's entry came from, for messages: ``where(section, key)`` -> ``"preset NAME: "`` or ``"FILE:LINE: "``.
+Where = Callable[[str | None, str | None], str]
+
+
+def _is_preset_file(ref: str) -> bool:
+    return ref.endswith(PRESET_SUFFIXES) or "/" in ref or os.sep in ref
+
+
+def _yaml_with_lines(text: str, origin: str) -> tuple[Any, dict[tuple[str, str | None], int]]:
+    """A YAML document and the 1-based line of each top-level key and of each key one level below it."""
+    try:
+        node = yaml.compose(text)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        line = f":{mark.line + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ConfigError(f"{origin}{line}: not valid YAML ({problem})") from None
+    lines: dict[tuple[str, str | None], int] = {}
+    if isinstance(node, yaml.MappingNode):
+        for key, value in node.value:
+            lines[(str(key.value), None)] = key.start_mark.line + 1
+            if isinstance(value, yaml.MappingNode):
+                for inner, _ in value.value:
+                    lines[(str(key.value), str(inner.value))] = inner.start_mark.line + 1
+    return data, lines
+
+
+def _preset_layers(ref: str, chain: tuple[str, ...] = ()) -> list[tuple[dict[str, Any], Where]]:
+    """A preset and its ``base:`` chain as layers, the base first; each layer knows where its entries are.
+
+    ``ref`` is a packaged preset's name or a path to a YAML file; a file's ``base:`` may name a packaged
+    preset or another file (relative to the first file's folder).
+    """
+    if ref in chain:
+        raise ConfigError(f"preset {chain[0]}: its base chain loops ({' -> '.join((*chain, ref))})")
+    if _is_preset_file(ref):
+        path = Path(ref)
+        if not path.is_file():
+            raise ConfigError(f"preset file {ref} does not exist; give a path to a YAML file or a packaged preset "
+                              f"({', '.join(available_presets())})")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"preset file {ref} is not readable ({err})") from None
+        data, lines = _yaml_with_lines(text, str(path))
+
+        def where(section: str | None, key: str | None, path: Path = path, lines=lines) -> str:
+            line = (lines.get((section, key)) or lines.get((section, None))) if section is not None else None
+            return f"{path}:{line}: " if line else f"{path}: "
+    else:
+        presets = available_presets()
+        if ref not in presets:
+            raise ConfigError(f"unknown preset '{ref}'; valid presets: {', '.join(presets)} "
+                              "(or a path to a YAML file)")
+        data = yaml.safe_load((resources.files("drago") / "presets" / f"{ref}.yaml").read_text()) or {}
+
+        def where(section: str | None, key: str | None, ref: str = ref) -> str:
+            return f"preset {ref}: "
+    data = data or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where(None, None)}a preset must be a mapping of sections (env, agent, train, ...)")
     base = data.pop("base", None)
     if base is None:
-        return data
-    merged = _read_preset(base)
-    for section, values in data.items():
-        if isinstance(values, dict):
-            merged.setdefault(section, {}).update(values)
-        else:
-            merged[section] = values
-    return merged
+        return [(data, where)]
+    base = str(base)
+    if _is_preset_file(ref) and _is_preset_file(base) and not Path(base).is_absolute():
+        base = str(Path(ref).parent / base)
+    return [*_preset_layers(base, (*chain, ref)), (data, where)]
 
 
 def load_config(preset: str, overrides: list[str] | None = None, method: str | None = None,
                 seed: int | None = None) -> Config:
-    """Build a validated config from a preset name plus ``key=value`` overrides.
+    """Build a validated config from a preset plus ``key=value`` overrides.
 
     Args:
-        preset: name of a file in ``drago/presets`` (see :func:`available_presets`).
+        preset: a packaged preset's name (see :func:`available_presets`) or the path of a YAML file of the
+            same form, whose ``base:`` may name a packaged preset.
         overrides: strings ``section.key=value`` or ``key=value`` for a key name that is unique
             across sections (``mlp_dim=128``).
         method: shortcut for ``method.name=...``.
@@ -245,9 +304,9 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
     Raises:
         ConfigError: one line naming the bad preset, key or value.
     """
-    cfg = Config(preset=preset)
-    data = _read_preset(preset)
-    _merge(cfg, data, prefix=f"preset {preset}: ")
+    cfg = Config(preset=Path(preset).stem if _is_preset_file(preset) else preset)
+    for data, where in _preset_layers(preset):
+        _merge(cfg, data, where)
     for item in overrides or []:
         key, sep, raw = item.partition("=")
         if not sep or not key:
@@ -293,22 +352,27 @@ def apply_override(cfg: Config, key: str, raw: str) -> None:
     setattr(target, name, value)
 
 
-def _merge(cfg: Config, data: dict[str, Any], prefix: str) -> None:
+def _merge(cfg: Config, data: dict[str, Any], where: Where | str) -> None:
+    """Set every ``section: {key: value}`` of ``data``; errors start with ``where(section, key)``."""
+    prefix = where if callable(where) else (lambda section, key, text=where: text)
     for section, values in data.items():
         if section == "preset":
             cfg.preset = str(values)
             continue
         if section not in SECTIONS:
-            raise ConfigError(f"{prefix}unknown section '{section}'; valid sections: {', '.join(SECTIONS)}")
+            raise ConfigError(f"{prefix(section, None)}unknown section '{section}'; valid sections: {', '.join(SECTIONS)}")
         if not isinstance(values, dict):
-            raise ConfigError(f"{prefix}section '{section}' must be a mapping of settings")
+            raise ConfigError(f"{prefix(section, None)}section '{section}' must be a mapping of settings")
         target = getattr(cfg, section)
         declared = {f.name: f for f in fields(target)}
         for name, value in values.items():
             if name not in declared:
-                raise ConfigError(f"{prefix}unknown setting '{section}.{name}'; valid keys in {section}: "
-                                  + ", ".join(declared))
-            setattr(target, name, _coerce(value, declared[name].type, f"{section}.{name}"))
+                raise ConfigError(f"{prefix(section, name)}unknown setting '{section}.{name}'; valid keys in "
+                                  f"{section}: " + ", ".join(declared))
+            try:
+                setattr(target, name, _coerce(value, declared[name].type, f"{section}.{name}"))
+            except ConfigError as err:
+                raise ConfigError(f"{prefix(section, name)}{err}") from None
 
 
 def _resolve_type(annotation: Any) -> Any:

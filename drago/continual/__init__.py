@@ -1,42 +1,23 @@
-"""Continual-learning methods, by name."""
+"""Continual-learning methods, by name (:mod:`drago.continual.registry`)."""
 
 from __future__ import annotations
 
-from drago.config import Config, ConfigError
+from drago.config import Config
 from drago.continual.base import ContinualMethod, TaskState
 from drago.continual.curiosity import Curiosity
 from drago.continual.drago import Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal
 from drago.continual.ewc import EWC
 from drago.continual.naive import Continual, LearnerOnly, Scratch
+from drago.continual.registry import METHODS, get_method, methods, plugin_problems, register_method
 from drago.continual.replay import Replay
 
-METHODS: dict[str, type[ContinualMethod]] = {
-    "continual": Continual,
-    "scratch": Scratch,
-    "drago": Drago,
-    "drago-no-rehearsal": DragoNoRehearsal,
-    "drago-no-reviewer": DragoNoReviewer,
-    "drago-single-agent": DragoSingleAgent,
-    "pseudo-rehearsal": PseudoRehearsal,
-    "ewc": EWC,
-    "replay": Replay,
-    "curiosity": Curiosity,
-}
+for _builtin in (Continual, Scratch, Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal,
+                 EWC, Replay, Curiosity):
+    register_method(_builtin.name, _builtin)
 
 
 def available_methods() -> list[str]:
-    return list(METHODS)
-
-
-def get_method(name: str) -> type[ContinualMethod]:
-    """The method class of a name.
-
-    Raises:
-        ConfigError: an unknown name (one line listing the valid ones).
-    """
-    if name not in METHODS:
-        raise ConfigError(f"unknown method '{name}'; valid methods: {', '.join(METHODS)}")
-    return METHODS[name]
+    return list(methods())
 
 
 def check_method(cfg: Config) -> Config:
@@ -57,5 +38,5 @@ def build_method(cfg, spec, device) -> ContinualMethod:
     return cls(cfg, spec, device)
 
 
-__all__ = ["METHODS", "ContinualMethod", "LearnerOnly", "TaskState", "available_methods", "build_method",
-           "check_method", "get_method"]
+__all__ = ["METHODS", "ContinualMethod", "LearnerOnly", "TaskState", "available_methods", "build_method", "check_method",
+           "get_method", "methods", "plugin_problems", "register_method"]

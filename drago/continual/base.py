@@ -1,7 +1,8 @@
 """The continual-method interface: a small strategy object with named hooks.
 
 The trainer owns the loop (collect, update, evaluate, checkpoint) and calls these hooks; a method
-changes only what differs. Adding a method is one file plus one line in ``drago/continual/__init__.py``.
+changes only what differs. A new method is a subclass registered under a name
+(:func:`drago.continual.registry.register_method`; docs: Extending drago).
 """
 
 from __future__ import annotations

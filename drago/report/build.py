@@ -34,7 +34,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
     """Write ``report.html`` (self-contained) and ``report.md`` (with PNG figures) for ``run_dirs``.
 
     Args:
-        run_dirs: Run directories, or folders holding run directories (see :func:`find_run_dirs`).
+        run_dirs: ReportedRun directories, or folders holding run directories (see :func:`find_run_dirs`).
             Any mix of methods and seeds, finished or not. The transfer runs each run holds
             (``RUN_DIR/transfer/*``) are reported too; a transfer run given directly is one of them,
             never a continual run of its method.

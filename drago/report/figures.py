@@ -13,7 +13,7 @@ from drago.eval.coverage import (
     CoverageError,
 )
 from drago.eval.stats import summarize
-from drago.report.runs import FRACTION_LABEL, Case, Run, as_number, case_name, quantity_of
+from drago.report.runs import FRACTION_LABEL, Case, ReportedRun, as_number, case_name, quantity_of
 
 HEATMAP_PNG = "heatmap.png"
 CURVES_PNG = "curves.png"
@@ -89,7 +89,7 @@ def _panels_png(grid: list[list[_Panel]], colours: dict[str, str]) -> bytes | No
     return buffer.getvalue()
 
 
-def curves_png(groups: dict[str, list[Run]], tasks: list[str], colours: dict[str, str]) -> bytes | None:
+def curves_png(groups: dict[str, list[ReportedRun]], tasks: list[str], colours: dict[str, str]) -> bytes | None:
     """Return vs env steps, one panel per task; a second row against learner env steps only when a
     reviewer spent env steps of its own in some run."""
     by_task = {task: {label: [[r for r in run.eval_rows if r["task"] == task] for run in runs]
@@ -106,7 +106,7 @@ def curves_png(groups: dict[str, list[Run]], tasks: list[str], colours: dict[str
     return _panels_png(grid, colours)
 
 
-def heatmap_figure(groups: dict[str, list[Run]]) -> bytes | None:
+def heatmap_figure(groups: dict[str, list[ReportedRun]]) -> bytes | None:
     from drago.report.heatmap import StageMaps, heatmap_png, run_cell_scores
 
     panels: dict[str, dict[int, StageMaps]] = {}
@@ -124,7 +124,7 @@ def heatmap_figure(groups: dict[str, list[Run]]) -> bytes | None:
     return heatmap_png(panels) if panels else None
 
 
-def transfer_png(tgroups: dict[str, list[Run]], cases: list[Case], colours: dict[str, str]) -> bytes | None:
+def transfer_png(tgroups: dict[str, list[ReportedRun]], cases: list[Case], colours: dict[str, str]) -> bytes | None:
     """Per case (columns): return vs learner env steps (top) and vs total env steps (bottom)."""
     def runs_of(case: Case) -> dict[str, list[list[dict[str, str]]]]:
         return {label: [run.eval_rows for run in runs if run.case == case] for label, runs in tgroups.items()}

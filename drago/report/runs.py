@@ -29,7 +29,7 @@ class ReportError(RunDirError):
 
 
 def find_run_dirs(paths: Iterable[str | Path]) -> list[Path]:
-    """Run directories named by ``paths``: each path is a run (it has ``config.yaml``) or a folder
+    """ReportedRun directories named by ``paths``: each path is a run (it has ``config.yaml``) or a folder
     whose run directories below it are taken, in sorted order. The search does not look inside a run
     directory: what lies there (``transfer/`` runs) is another kind of experiment, which
     :func:`find_transfer_dirs` finds. Duplicates are dropped.
@@ -68,7 +68,7 @@ def find_transfer_dirs(run_dir: Path) -> list[Path]:
 
 
 @dataclass
-class Run:
+class ReportedRun:
     """What a report needs from one run directory.
 
     Attributes:
@@ -134,7 +134,7 @@ def _read_eval(path: Path, required: Sequence[str] = EVAL_COLUMNS) -> list[dict[
     return rows
 
 
-def read_run(path: str | Path) -> Run:
+def read_run(path: str | Path) -> ReportedRun:
     """Read one run directory.
 
     Raises:
@@ -148,7 +148,8 @@ def read_run(path: str | Path) -> Run:
         raise ReportError(f"{path / CONFIG_FILE} is not readable ({err.strerror or err})") from None
     # DeepMind Control tasks have no known optimum, so their eval.csv has no fraction_of_optimal.
     required = EVAL_COLUMNS if cfg.env.domain == GRID_DOMAIN else EVAL_COLUMNS[:2]
-    return Run(path=path, cfg=cfg, summary=read_summary(path, ReportError), eval_rows=_read_eval(path, required))
+    return ReportedRun(path=path, cfg=cfg, summary=read_summary(path, ReportError),
+                       eval_rows=_read_eval(path, required))
 
 
 def as_number(value: Any) -> float:
@@ -158,18 +159,18 @@ def as_number(value: Any) -> float:
         return math.nan
 
 
-def _method(run: Run) -> str:
+def _method(run: ReportedRun) -> str:
     """The method a run is reported under: a transfer learned without the method's extras is its own."""
     return f"{run.method} (learner only)" if run.is_transfer and run.cfg.transfer.learner_only else run.method
 
 
-def label_runs(runs: list[Run]) -> dict[str, list[Run]]:
+def label_runs(runs: list[ReportedRun]) -> dict[str, list[ReportedRun]]:
     """Group runs by method, in order of first appearance; a method run under several presets is
     split by preset, since their budgets differ and averaging them would mean nothing."""
     presets: dict[str, set[str]] = {}
     for run in runs:
         presets.setdefault(_method(run), set()).add(run.cfg.preset)
-    groups: dict[str, list[Run]] = {}
+    groups: dict[str, list[ReportedRun]] = {}
     for run in runs:
         method = _method(run)
         run.label = method if len(presets[method]) == 1 else f"{method} [{run.cfg.preset}]"
@@ -177,7 +178,7 @@ def label_runs(runs: list[Run]) -> dict[str, list[Run]]:
     return groups
 
 
-def task_order(runs: Sequence[Run]) -> list[str]:
+def task_order(runs: Sequence[ReportedRun]) -> list[str]:
     order: list[str] = []
     for run in runs:
         order.extend(t for t in run.planned if t not in order)

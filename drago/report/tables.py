@@ -20,7 +20,7 @@ from drago.eval.coverage import (
 from drago.eval.metrics import continual_metrics, cw_forward_transfer
 from drago.eval.stats import summarize
 from drago.report.content import Findings, Table
-from drago.report.runs import EVAL_FILE, Run, as_number, quantity_of, task_room
+from drago.report.runs import EVAL_FILE, ReportedRun, as_number, quantity_of, task_room
 from drago.train.rundir import SUMMARY_FILE
 
 DIGITS = 2
@@ -43,7 +43,7 @@ def _wall_time(seconds: Any) -> str:
     return f"{s / 3600:.1f} h"
 
 
-def runs_table(groups: dict[str, list[Run]]) -> Table:
+def runs_table(groups: dict[str, list[ReportedRun]]) -> Table:
     rows = []
     for label, runs in groups.items():
         for run in runs:
@@ -54,7 +54,7 @@ def runs_table(groups: dict[str, list[Run]]) -> Table:
                  ("method", "seed", "preset", "complete", "tasks done", "wall time", "run directory"), rows)
 
 
-def returns_table(groups: dict[str, list[Run]], tasks: list[str]) -> Table:
+def returns_table(groups: dict[str, list[ReportedRun]], tasks: list[str]) -> Table:
     rows = []
     for label, runs in groups.items():
         for task in tasks:
@@ -73,7 +73,7 @@ def returns_table(groups: dict[str, list[Run]], tasks: list[str]) -> Table:
                  ("method", "task", "seeds", "fraction of optimum", "return", "DP optimum"), rows)
 
 
-def _task_curve(run: Run, task: str) -> tuple[dict[int, float], float]:
+def _task_curve(run: ReportedRun, task: str) -> tuple[dict[int, float], float]:
     """A finished task's evaluation curve (task env step -> value) and the best value its scale allows:
     1 for the fraction of the DP optimum (grid), the most a DeepMind Control episode can earn for raw
     return (reward at most 1 per control step)."""
@@ -86,7 +86,7 @@ def _task_curve(run: Run, task: str) -> tuple[dict[int, float], float]:
     return {x: y for x, y in curve.items() if math.isfinite(y)}, ceiling
 
 
-def forward_transfer_table(groups: dict[str, list[Run]], tasks: list[str], findings: Findings) -> list[Table]:
+def forward_transfer_table(groups: dict[str, list[ReportedRun]], tasks: list[str], findings: Findings) -> list[Table]:
     """Continual World forward transfer of every method against the `scratch` runs, from training curves."""
     reference = next((label for label, runs in groups.items() if runs and runs[0].method == "scratch"), None)
     others = [label for label in groups if label != reference]
@@ -120,8 +120,8 @@ def forward_transfer_table(groups: dict[str, list[Run]], tasks: list[str], findi
                 per_run.append(transfer)
         if per_run:
             means = [sum(t.values()) / len(t) for t in per_run]
-            cells = [format_summary([t[task] for t in per_run if task in t])[0] if any(task in t for t in per_run) else "–"
-                     for task in tasks]
+            cells = [format_summary([t[task] for t in per_run if task in t])[0]
+                     if any(task in t for t in per_run) else "–" for task in tasks]
             rows.append((label, str(len(per_run)), format_summary(means)[0], *cells))
     if not rows:
         return []
@@ -136,7 +136,7 @@ def forward_transfer_table(groups: dict[str, list[Run]], tasks: list[str], findi
                   ("method", "seeds", "mean", *tasks), rows)]
 
 
-def coverage_rows(run: Run, findings: Findings) -> list[dict[str, Any]]:
+def coverage_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
     """The run's coverage rows: its coverage.csv when it matches its checkpoints, else computed."""
     if run.cfg.env.domain != GRID_DOMAIN:
         return []  # its retention matrix comes from held-out sets instead
@@ -167,7 +167,7 @@ def _accuracy(rows: list[dict[str, Any]]) -> dict[tuple[int, str], float]:
     return {(int(r["stage"]), r["room"]): float(r["accuracy"]) for r in rows}
 
 
-def coverage_table(groups: dict[str, list[Run]], coverage: dict[Path, list[dict[str, Any]]]) -> Table:
+def coverage_table(groups: dict[str, list[ReportedRun]], coverage: dict[Path, list[dict[str, Any]]]) -> Table:
     rows = []
     for label, runs in groups.items():
         by_run = [(_accuracy(coverage[run.path]), run) for run in runs if coverage.get(run.path)]
@@ -184,7 +184,7 @@ def coverage_table(groups: dict[str, list[Run]], coverage: dict[Path, list[dict[
                  ("method", "after stage", "seeds", *COVERAGE_COLUMNS), rows)
 
 
-def coverage_matrix(run: Run, rows: list[dict[str, Any]], findings: Findings) -> list[list[float]]:
+def coverage_matrix(run: ReportedRun, rows: list[dict[str, Any]], findings: Findings) -> list[list[float]]:
     """R[i][j] = coverage accuracy in the room of task j after stage i + 1, over the stages the run finished."""
     acc = _accuracy(rows)
     if not acc:
@@ -212,7 +212,7 @@ def retention_score_matrix(rows: list[dict[str, Any]]) -> list[list[float]]:
     return [[score[(i + 1, j + 1)] for j in range(stages)] for i in range(stages)]
 
 
-def metrics_table(groups: dict[str, list[Run]], matrices: dict[Path, list[list[float]]], table_id: str,
+def metrics_table(groups: dict[str, list[ReportedRun]], matrices: dict[Path, list[list[float]]], table_id: str,
                    title: str, what: str) -> Table:
     """GEM ACC/BWT and Continual World forgetting of each run's matrix R, grouped by its stage count."""
     rows = []
@@ -235,7 +235,7 @@ def metrics_table(groups: dict[str, list[Run]], matrices: dict[Path, list[list[f
                  ("method", "stages T", "seeds", "ACC", "BWT", "forgetting"), rows)
 
 
-def retention_rows(run: Run, findings: Findings) -> list[dict[str, Any]]:
+def retention_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
     """A DeepMind Control run's retention rows from its held-out sets on disk (none is recorded here)."""
     from drago.eval.heldout import HeldoutError, heldout_checkpoints, heldout_path, retention_matrix
 
@@ -254,7 +254,7 @@ def retention_rows(run: Run, findings: Findings) -> list[dict[str, Any]]:
     return retention_matrix(run.path) if len(missing) < len(checkpoints) else []
 
 
-def retention_tables(groups: dict[str, list[Run]], rows: dict[Path, list[dict[str, Any]]]) -> list[Table]:
+def retention_tables(groups: dict[str, list[ReportedRun]], rows: dict[Path, list[dict[str, Any]]]) -> list[Table]:
     """The retention matrix of DeepMind Control runs (method x stage x held-out set), score and error."""
     if not any(rows.values()):
         return []
@@ -274,7 +274,8 @@ def retention_tables(groups: dict[str, list[Run]], rows: dict[Path, list[dict[st
         for key in sorted(cells):
             stage = f"{key[0]}: {key[1]}"
             values = [cells[key].get(task, []) for task in tasks]
-            score_rows.append((label, stage, str(len(seeds[key])), *(format_summary([v[0] for v in vs])[0] for vs in values)))
+            scores = (format_summary([v[0] for v in vs])[0] for vs in values)
+            score_rows.append((label, stage, str(len(seeds[key])), *scores))
             error_rows.append((label, stage, str(len(seeds[key])),
                                *(summarize([v[1] for v in vs]).format(4) for vs in values)))
     columns = ("method", "after stage", "seeds", *tasks)
@@ -288,7 +289,7 @@ def retention_tables(groups: dict[str, list[Run]], rows: dict[Path, list[dict[st
                   f"{what}. Mean ± std [95% CI] over seeds.", columns, error_rows)]
 
 
-def find_gaps(groups: dict[str, list[Run]], tasks: list[str], findings: Findings) -> None:
+def find_gaps(groups: dict[str, list[ReportedRun]], tasks: list[str], findings: Findings) -> None:
     """Incomplete runs, missing checkpoints and files, uneven seeds and unreached tasks."""
     for runs in groups.values():
         for run in runs:

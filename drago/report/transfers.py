@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from drago.report.content import Findings, Table
-from drago.report.runs import EVAL_FILE, Case, Run, as_number, case_name
+from drago.report.runs import EVAL_FILE, Case, ReportedRun, as_number, case_name
 from drago.report.tables import format_summary, metrics_table
 from drago.train.rundir import RunDirError, atomic_write_text, is_run_dir, read_run_config, read_summary
 from drago.train.transfer import training_returns, transfer_summary
@@ -37,7 +37,7 @@ _FEW_SHOT = (
 )
 
 
-def transfer_block(run: Run) -> dict[str, Any] | None:
+def transfer_block(run: ReportedRun) -> dict[str, Any] | None:
     """A transfer's few-shot scores: its summary's once it has finished, else computed in memory from
     its eval.csv (the scores it has reached so far; nothing is written)."""
     block = (run.summary or {}).get("transfer") if run.complete else None
@@ -55,7 +55,7 @@ def _distinct(values: Iterable[Any], digits: int = 0) -> str:
     return ", ".join(dict.fromkeys(shown)) or "–"
 
 
-def _by_case(tgroups: dict[str, list[Run]], cases: list[Case]) -> Iterator[tuple[Case, str, list[Run]]]:
+def _by_case(tgroups: dict[str, list[ReportedRun]], cases: list[Case]) -> Iterator[tuple[Case, str, list[ReportedRun]]]:
     """(case, method label, that method's transfers of the case) for every pair that has any."""
     for case in cases:
         for label, runs in tgroups.items():
@@ -64,7 +64,7 @@ def _by_case(tgroups: dict[str, list[Run]], cases: list[Case]) -> Iterator[tuple
                 yield case, label, mine
 
 
-def transfer_tables(tgroups: dict[str, list[Run]], cases: list[Case],
+def transfer_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
                      blocks: dict[Path, dict[str, Any] | None]) -> list[Table]:
     tables = []
     for which, key, title, caption in _FEW_SHOT:
@@ -81,7 +81,7 @@ def transfer_tables(tgroups: dict[str, list[Run]], cases: list[Case],
     return tables
 
 
-def training_table(tgroups: dict[str, list[Run]], cases: list[Case]) -> Table:
+def training_table(tgroups: dict[str, list[ReportedRun]], cases: list[Case]) -> Table:
     """The learners' own episode returns over the few-shot episodes (:func:`training_returns`)."""
     rows = []
     for case, label, mine in _by_case(tgroups, cases):
@@ -100,12 +100,12 @@ def training_table(tgroups: dict[str, list[Run]], cases: list[Case]) -> Table:
                   "episodes with a positive return"), rows)
 
 
-def _source_run(transfer: Run) -> Path:
+def _source_run(transfer: ReportedRun) -> Path:
     """The run directory whose stage checkpoint a transfer started from (``RUN_DIR/checkpoints/*.pt``)."""
     return (transfer.path / str(transfer.cfg.transfer.checkpoint)).resolve().parent.parent
 
 
-def _relearning_matrix(run: Run, relearned: dict[tuple[str, int], float],
+def _relearning_matrix(run: ReportedRun, relearned: dict[tuple[str, int], float],
                        findings: Findings) -> list[list[float]]:
     """R[i][j] = the few-shot score of relearning training task j from the world model after stage i + 1,
     over the largest T for which every (stage < T, task < T) cell has a score; a gap is reported."""
@@ -124,7 +124,7 @@ def _relearning_matrix(run: Run, relearned: dict[tuple[str, int], float],
     return [[relearned[(run.planned[j], i + 1)] for j in range(stages)] for i in range(stages)]
 
 
-def relearning_metrics(groups: dict[str, list[Run]], transfers: list[Run],
+def relearning_metrics(groups: dict[str, list[ReportedRun]], transfers: list[ReportedRun],
                         blocks: dict[Path, dict[str, Any] | None], findings: Findings) -> list[Table]:
     """Continual-learning metrics of the return matrix: each training task relearned after each stage."""
     relearned: dict[Path, dict[tuple[str, int], float]] = {}
@@ -146,7 +146,7 @@ def relearning_metrics(groups: dict[str, list[Run]], transfers: list[Run],
                            "TASK_j --after i+1`) from the world model saved")]
 
 
-def transfer_gaps(groups: dict[str, list[Run]], tgroups: dict[str, list[Run]], cases: list[Case],
+def transfer_gaps(groups: dict[str, list[ReportedRun]], tgroups: dict[str, list[ReportedRun]], cases: list[Case],
                    blocks: dict[Path, dict[str, Any] | None], findings: Findings) -> None:
     """Unfinished transfers, scores not reached, cases some method or seed lacks, uneven few-shot episodes."""
     for label, runs in tgroups.items():
@@ -169,7 +169,7 @@ def transfer_gaps(groups: dict[str, list[Run]], tgroups: dict[str, list[Run]], c
                 findings.missing.append(f"{where}: {'; '.join(parts)}")
     domains = {run.case: run.cfg.env.domain for runs in tgroups.values() for run in runs}
 
-    def applies(run: Run, case: Case) -> bool:  # a sequence run that could have this transfer
+    def applies(run: ReportedRun, case: Case) -> bool:  # a sequence run that could have this transfer
         return run.cfg.env.domain == domains[case] and case[1] <= len(run.planned)
 
     for label in dict.fromkeys([*groups, *tgroups]):
@@ -258,6 +258,7 @@ def write_transfer_tables(transfer_dirs: Iterable[Path], out_dir: Path) -> list[
                 text, n = format_summary(values)
                 cells.append(f"{text} ({n})" if n else text)
             best = optimum[(task, after)]
-            lines.append(f"| {task} after {after} | {'' if best is None else f'{best:.1f}'} | " + " | ".join(cells) + " |")
+            shown = "" if best is None else f"{best:.1f}"
+            lines.append(f"| {task} after {after} | {shown} | " + " | ".join(cells) + " |")
     md_path = atomic_write_text(Path(out_dir) / TRANSFERS_MD, "\n".join(lines) + "\n")
     return [csv_path, md_path]

@@ -1,0 +1,120 @@
+"""The method registry: the built-in methods, methods registered from Python, and plug-ins from packages.
+
+A method is a :class:`~drago.continual.base.ContinualMethod` subclass registered under a name, with
+``@drago.register_method("my-method")`` or through a package's entry point in the group ``drago.methods``
+(docs: Extending drago). Plug-ins load on the first lookup; one that fails to load is skipped with one
+warning line naming it and its package, and drago runs on with the rest.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from collections.abc import Callable
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any, TypeVar
+
+from drago.config import ConfigError
+from drago.continual.base import ContinualMethod
+
+ENTRY_POINT_GROUP = "drago.methods"
+NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
+
+M = TypeVar("M", bound=type[ContinualMethod])
+
+#: The live registry, name -> class; add to it with :func:`register_method` (tests may patch it).
+METHODS: dict[str, type[ContinualMethod]] = {}
+_problems: list[str] = []
+_plugins_loaded = False
+
+
+class RegistryError(ConfigError):
+    """A method that cannot be registered as asked; the message is one line."""
+
+
+def register_method(name: str, cls: M | None = None, *, replace: bool = False) -> Any:
+    """Register a :class:`ContinualMethod` subclass under ``name``; a decorator when ``cls`` is omitted.
+
+    Example::
+
+        @drago.register_method("l2-anchor")
+        class L2Anchor(drago.ContinualMethod):
+            ...
+
+    Raises:
+        RegistryError: a name that is not lowercase letters, digits, ``-`` and ``_``; a class that is not a
+            ContinualMethod subclass; a name another class holds (pass ``replace=True`` to take it over).
+    """
+    def add(method: M) -> M:
+        if not isinstance(name, str) or not NAME.fullmatch(name):
+            raise RegistryError(f"method name {name!r} must be lowercase letters, digits, '-' and '_', "
+                                "starting with a letter or digit")
+        if not (isinstance(method, type) and issubclass(method, ContinualMethod)):
+            raise RegistryError(f"register_method({name!r}): {method!r} is not a subclass of "
+                                "drago.ContinualMethod; derive the method from it")
+        held = METHODS.get(name)
+        if held is not None and held is not method and not replace:
+            raise RegistryError(f"method '{name}' is already registered by {_where(held)}; choose another name "
+                                "or pass replace=True")
+        METHODS[name] = method
+        return method
+
+    return add if cls is None else add(cls)
+
+
+def _where(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def _package(entry: EntryPoint) -> str:
+    dist = getattr(entry, "dist", None)
+    return dist.name if dist is not None else "unknown package"
+
+
+def load_plugins(entries: Callable[..., Any] = entry_points) -> None:
+    """Register the methods of every installed plug-in (entry point group ``drago.methods``), once.
+
+    An entry point names a ContinualMethod subclass (registered under the entry point's name) or a module
+    whose import registers its methods. A failure is recorded, announced on stderr in one line, and skipped.
+    """
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    _plugins_loaded = True
+    for entry in entries(group=ENTRY_POINT_GROUP):
+        try:
+            loaded = entry.load()
+            if isinstance(loaded, type):
+                register_method(entry.name, loaded)
+            elif entry.name not in METHODS:
+                raise RegistryError(f"it loaded {entry.value} but registered no method named '{entry.name}'")
+        except Exception as err:  # a plug-in's failure must not take drago down with it
+            first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+            problem = (f"method plug-in '{entry.name}' ({entry.value}) from package '{_package(entry)}' was "
+                       f"skipped: {type(err).__name__}{': ' + first if first else ''}")
+            _problems.append(problem)
+            print(f"drago: warning: {problem}", file=sys.stderr)
+
+
+def methods() -> dict[str, type[ContinualMethod]]:
+    """Every registered method by name: the built-in ones first, then plug-ins."""
+    load_plugins()
+    return dict(METHODS)
+
+
+def plugin_problems() -> list[str]:
+    """One line per plug-in that failed to load (after :func:`methods` has loaded them)."""
+    load_plugins()
+    return list(_problems)
+
+
+def get_method(name: str) -> type[ContinualMethod]:
+    """The method class of a name.
+
+    Raises:
+        ConfigError: an unknown name (one line listing the valid ones).
+    """
+    found = methods()
+    if name not in found:
+        raise ConfigError(f"unknown method '{name}'; valid methods: {', '.join(found)}")
+    return found[name]

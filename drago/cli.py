@@ -365,8 +365,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     from drago.config import ConfigError
-    from drago.train.checkpoint import CheckpointError
+    from drago.train.checkpoint import CheckpointError, NonFiniteCheckpoint
     from drago.train.rundir import RunDirError
+    from drago.train.trainer import TrainingDiverged
 
     try:
         args, extra = _parser().parse_known_args(argv)
@@ -379,6 +380,9 @@ def _main(argv: list[str] | None) -> int:
     except (UsageError, ConfigError, CheckpointError, RunDirError) as err:
         print(f"drago: error: {err}", file=sys.stderr)
         return EXIT_USAGE
+    except (TrainingDiverged, NonFiniteCheckpoint) as err:
+        print(f"drago: error: {err}", file=sys.stderr)
+        return 1
     except _Interrupted as interrupted:
         print(f"drago: interrupted; {interrupted}", file=sys.stderr)
         return 130

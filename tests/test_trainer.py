@@ -265,6 +265,50 @@ def test_resume_after_crash_replays_the_uninterrupted_run(reference, tmp_path, m
         assert_same_state(load_checkpoint(mine)["world_model"], load_checkpoint(ref)["world_model"])
 
 
+def test_a_nan_stops_the_run_in_one_line_and_resume_continues_from_a_sound_checkpoint(
+        reference, tmp_path, capsys):
+    run = tmp_path / "diverged"
+    original = Continual.gradient_step
+    calls = {"task2": 0}
+
+    def poisoned_gradient_step(self, task, u):
+        metrics = original(self, task, u)
+        if task.index == 1:
+            calls["task2"] += 1
+            if calls["task2"] == 15:  # episode 4 of room 2, after the periodic checkpoint at step 200
+                with torch.no_grad():
+                    next(task.world_model.dynamics.parameters()).view(-1)[0] = float("nan")
+        return metrics
+
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(Continual, "gradient_step", poisoned_gradient_step)
+        assert train(run) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("drago: error: [room2] training diverged at task step 400")
+    assert "not finite" in err or "is nan" in err
+    ckpt = run / "checkpoints"
+    assert f"the last good checkpoint is {ckpt / 'resume.pt'}" in err and f"drago resume {run}" in err
+    assert not (ckpt / "task2_room2.pt").exists()
+    snapshot = load_checkpoint(ckpt / "resume.pt", kind="resume")
+    assert snapshot["step"] == 200 and all(torch.isfinite(v).all() for v in snapshot["world_model"].values())
+
+    assert cli.main(["resume", str(run), "--no-progress"]) == 0
+    for name in ("train.csv", "eval.csv"):
+        assert (run / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+def test_a_checkpoint_with_a_nan_is_never_written(tmp_path):
+    from drago.train.checkpoint import NonFiniteCheckpoint
+
+    path = tmp_path / "task1_room1.pt"
+    save_checkpoint(path, {"world_model": {"w": torch.ones(2)}}, kind="task", domain="minigrid")
+    before = path.read_bytes()
+    with pytest.raises(NonFiniteCheckpoint, match=r"not saving .*: world_model\.w holds a non-finite value"):
+        save_checkpoint(path, {"world_model": {"w": torch.tensor([1.0, float("inf")])}}, kind="task",
+                        domain="minigrid")
+    assert path.read_bytes() == before and not list(tmp_path.glob(".*.tmp"))
+
+
 def test_resume_of_a_complete_run_is_a_no_op(reference, capsys):
     before = {n: (reference / n).read_bytes() for n in ("train.csv", "eval.csv")}
     assert cli.main(["resume", str(reference), "--no-progress"]) == 0

@@ -22,7 +22,7 @@ import torch
 
 ArrayLike = np.ndarray | torch.Tensor
 
-__all__ = ["Batch", "DevicePriorities", "EpisodeReplay", "HostPriorities", "Priorities", "SumTree"]
+__all__ = ["Batch", "DevicePriorities", "EpisodeReplay", "HostPriorities", "NonFinitePriority", "Priorities", "SumTree"]
 
 
 class SumTree:
@@ -150,6 +150,10 @@ class SumTree:
         self._max = float(state["max"])
 
 
+class NonFinitePriority(ValueError):
+    """A priority write-back with a NaN, an infinity or a negative value: the losses have diverged."""
+
+
 class Priorities(ABC):
     """PER priorities of a buffer's transitions, behind one small interface with a host and a device form.
 
@@ -250,7 +254,7 @@ class HostPriorities(Priorities):
         if idx.shape != p.shape:
             raise ValueError(f"indices {idx.shape} and priorities {p.shape} differ in shape")
         if not np.all(np.isfinite(p)) or np.any(p < 0):
-            raise ValueError("priorities must be finite and non-negative")
+            raise NonFinitePriority("priorities must be finite and non-negative")
         keep = self._sampleable(idx)
         idx, p = idx[keep], p[keep] + self.PRIORITY_EPS
         if idx.size == 0:

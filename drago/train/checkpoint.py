@@ -32,11 +32,37 @@ class CheckpointError(ValueError):
     """A missing, corrupt or incompatible checkpoint; the message is one line."""
 
 
+class NonFiniteCheckpoint(RuntimeError):
+    """A checkpoint that would hold a NaN or an infinity in a floating-point tensor: it is never written."""
+
+
+def _first_non_finite(value: Any, where: str = "") -> str | None:
+    """The dotted key of the first floating-point tensor with a NaN or an infinity in a nested payload."""
+    if isinstance(value, torch.Tensor):
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            return where or "a tensor"
+        return None
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        return None
+    for key, inner in items:
+        found = _first_non_finite(inner, f"{where}.{key}" if where else str(key))
+        if found is not None:
+            return found
+    return None
+
+
 def save_checkpoint(path: str | Path, payload: dict[str, Any], kind: str, domain: str) -> Path:
     """Write ``payload`` durably and atomically (:func:`~drago.train.rundir.atomic_write`): a crash at
     any moment leaves either the old file or the new one."""
     if kind not in KINDS:
         raise ValueError(f"unknown checkpoint kind '{kind}'; valid kinds: {', '.join(KINDS)}")
+    bad = _first_non_finite(payload)
+    if bad is not None:
+        raise NonFiniteCheckpoint(f"not saving {path}: {bad} holds a non-finite value; the previous file is kept")
     data = {"format": FORMAT, "version": VERSION, "kind": kind, "domain": domain, **payload}
     return atomic_write(path, lambda handle: torch.save(data, handle), durable=True)
 

@@ -9,6 +9,7 @@ uninterrupted one take exactly the same path.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -19,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from drago.agent.agent import Agent
-from drago.agent.buffer import EpisodeReplay
+from drago.agent.buffer import EpisodeReplay, NonFinitePriority
 from drago.agent.networks import build_world_model
 from drago.config import Config
 from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
@@ -30,6 +31,10 @@ from drago.train.episodes import EpisodeStart, run_episode, run_episodes
 from drago.train.logger import RunLogger
 from drago.train.resources import PeakMemory
 from drago.train.rundir import resume_checkpoint_path, task_checkpoint_path, write_summary
+
+class TrainingDiverged(RuntimeError):
+    """A non-finite loss, gradient norm or weight; the message is one line naming where and how to go on."""
+
 
 #: Starts an episode at a task step: ``start(env, task_step)`` returns the first observation.
 TaskEpisodeStart = Callable[[Any, int], np.ndarray]
@@ -198,10 +203,16 @@ class Trainer:
 
             metrics: dict[str, torch.Tensor] = {}
             if step >= seed_steps:
-                for i in range(cfg.updates_per_episode):
-                    metrics = self.method.gradient_step(task, step + i)
+                try:
+                    for i in range(cfg.updates_per_episode):
+                        metrics = self.method.gradient_step(task, step + i)
+                except NonFinitePriority:
+                    raise TrainingDiverged(self._divergence(task, "the replay priorities (TD errors) are not "
+                                                                   "finite")) from None
             # Only the last gradient step is logged, as in the official code: one host sync per iteration.
             row.update({k: float(v) for k, v in metrics.items()})
+            if metrics:
+                self._check_finite(task, row, metrics)
             t2, cpu2 = time.perf_counter(), time.process_time()
 
             env_step = self.env_steps(task.step)
@@ -300,6 +311,34 @@ class Trainer:
                 make_env(cfg.env.domain, task.name, cfg.env.dense_reward, action_repeat=cfg.env.action_repeat)
                 for _ in range(cfg.train.eval_episodes)])
         return self._eval_env_cache[1]
+
+    # ---- divergence guard ----------------------------------------------------------------------
+    def last_good_checkpoint(self, index: int) -> str:
+        """What ``drago resume`` would continue task ``index`` from, for the divergence message."""
+        if self.resume_checkpoint.exists():
+            return str(self.resume_checkpoint)
+        start = self.start_checkpoint(index)
+        return f"{start} (the task restarts)" if start is not None else "none yet (the task restarts from its beginning)"
+
+    def _check_finite(self, task: TaskState, row: dict[str, Any], metrics: dict[str, torch.Tensor]) -> None:
+        """Stop the run at the first non-finite loss, gradient norm or network weight (one line, naming the
+        task, the step, the quantity and the last good checkpoint); checkpoints are checked on save too."""
+        bad = next((k for k in metrics if not math.isfinite(row[k])), None)
+        if bad is None:
+            named = [("world model", task.world_model), ("learner heads", task.learner.heads)]
+            finite = torch.stack([torch.isfinite(p).all() for _, module in named for p in module.parameters()])
+            if not bool(finite.all()):
+                bad = next(name for name, module in named
+                           if not all(bool(torch.isfinite(p).all()) for p in module.parameters()))
+                raise TrainingDiverged(self._divergence(task, f"a weight of the {bad} is not finite"))
+            return
+        raise TrainingDiverged(self._divergence(task, f"{bad} is {row[bad]}"))
+
+    def _divergence(self, task: TaskState, what: str) -> str:
+        return (f"[{task.name}] training diverged at task step {task.step} (env step {self.env_steps(task.step)}): "
+                f"{what}; the last good checkpoint is {self.last_good_checkpoint(task.index)}; "
+                f"`drago resume {self.run_dir}` continues from it (with the same settings it may diverge again: "
+                "see docs: Speed and precision)")
 
     # ---- resumable snapshots -------------------------------------------------------------------
     def _save_resume(self, task: TaskState, env, elapsed: float, cpu_elapsed: float, last_eval_env: int,

@@ -1,57 +1,51 @@
-"""Environments and the task catalogue, behind one factory."""
+"""Environments and the task catalogue, behind one factory and a registry of domains.
+
+A domain is data plus a factory (:class:`Domain`): its sizes, its tasks, how to build the env of a task.
+The built-in domains (minigrid, cheetah, walker and the pendulum example) are registered like any
+other; :func:`register_domain` adds yours, :func:`gym_domain` makes one from gymnasium envs, packages
+add theirs through the ``drago.domains`` entry points, and ``dmc:DOMAIN`` names every stock dm_control
+task. The functions below are thin lookups over the registry.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import gymnasium as gym
 
+from drago.envs.builtin import CHEETAH, MINIGRID, WALKER
+from drago.envs.domain import Domain, DomainError, EnvSpec
+from drago.envs.gym_envs import FlatEnv, TransitionReward, gym_domain, reward_variant
+from drago.envs.registry import (ENTRY_POINT_GROUP, PluginProblem, available_domains, domain_families, get_domain,
+                                 is_domain, load_plugins, plugin_problems, register_domain, source_of,
+                                 unregister_domain)
 from drago.envs.tasks import (DMC_SEQUENCES, DMC_TASKS, DMC_TRANSFER_TASKS, GRID_SEQUENCES, GRID_TASKS, DmcTask,
-                               DmcTransferTask, GridTask, get_grid_task)
+                              DmcTransferTask, GridTask, get_grid_task)
+
+#: The paper's three domains. Every registered domain is in :func:`available_domains`.
+DOMAINS = ("minigrid", "cheetah", "walker")
+#: Their sizes (kept for older callers; :func:`env_spec` answers for every domain).
+DOMAIN_SPECS = {d.name: d.env_spec() for d in (MINIGRID, CHEETAH, WALKER)}
 
 
-@dataclass(frozen=True)
-class EnvSpec:
-    """What the agent needs to know about a domain."""
-
-    domain: str
-    obs_dim: int
-    action_dim: int
-    discrete: bool  # one-hot actions and a categorical planner
-
-
-# The DMC sizes are checked against dm_control in tests/test_dmc.py; here they need no import of it.
-DOMAIN_SPECS = {
-    "minigrid": EnvSpec("minigrid", obs_dim=3, action_dim=3, discrete=True),
-    "cheetah": EnvSpec("cheetah", obs_dim=17, action_dim=6, discrete=False),
-    "walker": EnvSpec("walker", obs_dim=24, action_dim=6, discrete=False),
-}
-DOMAINS = tuple(DOMAIN_SPECS)
+def _task_domain(domain: str, task: str) -> Domain:
+    d = get_domain(domain)
+    if task not in d.tasks:
+        raise DomainError(f"unknown task '{task}' for domain {domain}; valid tasks: " + ", ".join(d.tasks))
+    return d
 
 
 def available_tasks(domain: str) -> list[str]:
     """Task names of a domain, training tasks first."""
-    if domain == "minigrid":
-        return list(GRID_TASKS)
-    if domain in DOMAIN_SPECS:
-        return [name for name, task in DMC_TASKS.items() if task.domain == domain]
-    raise ValueError(f"unknown domain '{domain}'; valid domains: {', '.join(DOMAIN_SPECS)}")
+    return list(get_domain(domain).tasks)
 
 
 def task_descriptions(domain: str) -> list[tuple[str, str]]:
     """(task, one line) for every task of a domain, for `drago list`."""
-    if domain == "minigrid":
-        # The catalogue's description already names start and goal.
-        return [(name, f"{t.description}; {'dense' if t.dense else 'sparse'} reward")
-                for name, t in GRID_TASKS.items()]
-    return [(name, f"{DMC_TASKS[name].description}; reward {DMC_TASKS[name].reward}")
-            for name in available_tasks(domain)]
+    return list(get_domain(domain).tasks.items())
 
 
 def env_spec(domain: str) -> EnvSpec:
-    if domain not in DOMAIN_SPECS:
-        raise ValueError(f"unknown domain '{domain}'; valid domains: {', '.join(DOMAIN_SPECS)}")
-    return DOMAIN_SPECS[domain]
+    """The sizes of a domain's observations and actions, and whether its actions are discrete."""
+    return get_domain(domain).env_spec()
 
 
 def make_env(domain: str, task: str, dense_reward: bool | None = None, render_mode: str | None = None,
@@ -59,46 +53,58 @@ def make_env(domain: str, task: str, dense_reward: bool | None = None, render_mo
     """Build the env of one task; seed it through ``reset(seed=...)``.
 
     Args:
-        domain: minigrid, cheetah or walker.
+        domain: minigrid, cheetah, walker or any registered domain or ``dmc:`` name (see
+            :func:`available_domains`).
         task: a task of that domain (see :func:`available_tasks`).
-        dense_reward: grid only: override the task's reward type (None: the catalogue's).
+        dense_reward: grid only (and domains that take it): override the task's reward type (None: the
+            catalogue's).
         render_mode: ``"rgb_array"`` to allow ``env.render()``.
         action_repeat: simulator control steps per agent step, rewards summed (None: the domain's
-            official value: grid 1, cheetah 4, walker 2).
-        max_episode_steps: DMC only: agent steps after which ``truncated`` is reported (None: never; the
-            trainer counts episode steps itself).
+            default: grid 1, cheetah 4, walker 2).
+        max_episode_steps: agent steps after which ``truncated`` is reported (None: never; the trainer
+            counts episode steps itself). The grid ignores it: its episodes are 100 steps.
+
+    Raises:
+        DomainError: an unknown domain or task, ``dense_reward`` for a domain without it, or an env
+            whose spaces do not match the domain's sizes (one line).
     """
-    if domain == "minigrid":
-        from drago.envs.fourrooms import FourRoomsEnv
+    d = _task_domain(domain, task)
+    if dense_reward is not None and not d.dense_reward:
+        takers = ["the grid" if name == "minigrid" else name for name in available_domains()
+                  if get_domain(name).dense_reward]
+        raise DomainError(f"dense_reward applies to {', '.join(takers) or 'no domain'} only, not to domain {domain}")
+    repeat = d.action_repeat if action_repeat is None else action_repeat
+    env = d.make(task, dense_reward, render_mode, repeat, max_episode_steps)
+    _check_env(d, task, env)
+    return env
 
-        if action_repeat not in (None, 1):
-            raise ValueError(f"the grid has no action repeat; got action_repeat={action_repeat}")
-        return FourRoomsEnv(get_grid_task(task, dense=dense_reward), render_mode=render_mode)
-    if domain in DOMAIN_SPECS:
-        if task not in available_tasks(domain):
-            raise ValueError(f"unknown task '{task}' for domain {domain}; valid tasks: "
-                             + ", ".join(available_tasks(domain)))
-        if dense_reward is not None:
-            raise ValueError(f"dense_reward applies to the grid only, not to domain {domain}")
-        from drago.envs.dmc import DMCEnv  # imports dm_control: only when a DMC env is built
 
-        return DMCEnv(task, action_repeat=action_repeat, max_episode_steps=max_episode_steps, render_mode=render_mode)
-    raise ValueError(f"unknown domain '{domain}'; valid domains: {', '.join(DOMAIN_SPECS)}")
+def _check_env(d: Domain, task: str, env: gym.Env) -> None:
+    spec = d.env_spec()
+    obs, act = getattr(env, "observation_space", None), getattr(env, "action_space", None)
+    shapes = (getattr(obs, "shape", None), getattr(act, "shape", None))
+    if shapes != ((spec.obs_dim,), (spec.action_dim,)):
+        env.close()
+        raise DomainError(f"task '{task}' of domain {d.name} built an env with observation shape {shapes[0]} and "
+                          f"action shape {shapes[1]}; the domain's spec says ({spec.obs_dim},) and "
+                          f"({spec.action_dim},): a domain's tasks must share their sizes")
 
 
 def task_optimum(domain: str, task: str, dense_reward: bool | None = None) -> float | None:
     """The exact optimal return of a task where one is known (grid: finite-horizon DP), else None."""
-    if domain == "minigrid":
-        from drago.envs.fourrooms import optimal_return
-
-        return optimal_return(get_grid_task(task, dense=dense_reward))
-    return None
+    d = get_domain(domain)
+    if d.optimum is None:
+        return None
+    return _task_domain(domain, task).optimum(task, dense_reward)
 
 
 # The official code's gymnasium id, so `gymnasium.make("MiniGrid-FourRooms-New", task="room2")` works.
 gym.register(id="MiniGrid-FourRooms-New", entry_point="drago.envs.fourrooms:make_fourrooms",
              max_episode_steps=None)
 
-__all__ = ["DMC_SEQUENCES", "DMC_TASKS", "DMC_TRANSFER_TASKS", "DOMAINS", "DmcTask", "DmcTransferTask", "EnvSpec",
-           "GRID_SEQUENCES", "GRID_TASKS", "GridTask", "available_tasks", "env_spec", "make_env", "task_descriptions",
-           "task_optimum"]
+__all__ = ["DMC_SEQUENCES", "DMC_TASKS", "DMC_TRANSFER_TASKS", "DOMAINS", "DOMAIN_SPECS", "ENTRY_POINT_GROUP",
+           "GRID_SEQUENCES", "GRID_TASKS", "DmcTask", "DmcTransferTask", "Domain", "DomainError", "EnvSpec", "FlatEnv",
+           "GridTask", "PluginProblem", "TransitionReward", "available_domains", "available_tasks", "domain_families",
+           "env_spec", "get_domain", "get_grid_task", "gym_domain", "is_domain", "load_plugins", "make_env",
+           "plugin_problems", "register_domain", "reward_variant", "source_of", "task_descriptions", "task_optimum",
+           "unregister_domain"]

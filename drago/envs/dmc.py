@@ -1,10 +1,11 @@
-"""DeepMind Control cheetah and walker behind a gymnasium API (paper Appendix C).
+"""DeepMind Control behind a gymnasium API: the paper's cheetah and walker (paper Appendix C), and every
+stock suite task as a ``dmc:`` domain (:class:`StockDMCEnv`, :func:`stock_domain`).
 
 Every task of a domain runs on the stock dm_control XML and the stock initial-state distribution (the
 official custom XMLs differ from stock only visually, docs: Environments, DeepMind Control); a task only chooses the reward,
 computed by the pure functions below from the physics after each control step.
 
-:class:`DMCEnv` differs from the official wrapper stack in two deliberate ways:
+:class:`DMCEnv` (and :class:`StockDMCEnv`) differ from the official wrapper stack in two deliberate ways:
 
 * the episode length is managed outside dm_control: the inner environment has an infinite time limit
   (the official code passes a step count as seconds, so it never times out either, paper Appendix C), and
@@ -24,16 +25,19 @@ import ctypes.util
 import logging
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
+from drago.envs.domain import ActionScaler, Domain, DomainError, EnvSpec
 from drago.envs.tasks import DmcTask, get_dmc_task
 
-__all__ = ["DMC_DOMAINS", "DMCEnv", "DmcDomain", "cheetah_jump_and_run_reward", "cheetah_jump_reward",
-           "cheetah_run_reward", "default_gl_backend", "reward_function", "walker_reward"]
+__all__ = ["DMC_DOMAINS", "DMC_PREFIX", "DMCEnv", "DmcDomain", "StockDMCEnv", "cheetah_jump_and_run_reward",
+           "cheetah_jump_reward", "cheetah_run_reward", "default_gl_backend", "reward_function", "stock_domain",
+           "stock_problem", "stock_task_sizes", "walker_reward"]
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,7 @@ class _DropCompilerNotice(logging.Filter):
 logging.getLogger("absl").addFilter(_DropCompilerNotice())
 
 try:
+    from dm_control import suite
     from dm_control.rl import control
     from dm_control.suite import cheetah, walker
     from dm_control.utils import rewards
@@ -199,33 +204,23 @@ def _make_dm_env(task: DmcTask) -> control.Environment:
 
 
 # ------------------------------------------------------------------------------------------------
-# gymnasium wrapper
+# gymnasium wrappers
 # ------------------------------------------------------------------------------------------------
-class DMCEnv(gym.Env):
-    """One DeepMind Control task with action repeat, a flat float32 state and external episode length.
+class _DmControlEnv(gym.Env):
+    """A dm_control ``control.Environment`` behind the gymnasium API: action repeat, a flat float32 state,
+    the episode length outside dm_control and seeding from ``np_random`` (see the module docstring).
 
-    Args:
-        task: a key of :data:`drago.envs.tasks.DMC_TASKS` (e.g. ``"cheetah-run"``) or the task itself.
-        action_repeat: control steps per agent step; rewards are summed over them (None: the domain's
-            official value, 4 cheetah / 2 walker).
-        max_episode_steps: agent steps after which ``step`` reports ``truncated=True`` (None: never).
-            The environment keeps stepping past it; only the caller ends an episode.
-        render_mode: ``"rgb_array"`` to allow :meth:`render`.
-        render_size: (height, width) of rendered frames.
-        camera_id: dm_control camera (0: the tracking camera of both domains).
-
-    Observations are the dm_control observation dict flattened in its order (cheetah: position,
-    velocity; walker: orientations, height, velocity). Actions are clipped to [-1, 1], the actuators'
-    range. ``terminated`` is always False: these tasks never end early.
+    drago's actions in [-1, 1] are clipped and mapped onto the actuators' range (the identity where that
+    range is [-1, 1], as for cheetah and walker). When dm_control ends an episode (an infinite time limit
+    leaves only a task's own termination, as in LQR), the episode goes on in an absorbing state: the
+    last observation again, reward 0, ``terminated=True``.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
 
-    def __init__(self, task: DmcTask | str, action_repeat: int | None = None, max_episode_steps: int | None = None,
-                 render_mode: str | None = None, render_size: tuple[int, int] = (240, 320), camera_id: int = 0):
-        self.task = get_dmc_task(task) if isinstance(task, str) else task
-        domain = DMC_DOMAINS[self.task.domain]
-        self.action_repeat = domain.action_repeat if action_repeat is None else int(action_repeat)
+    def _setup(self, env: control.Environment, action_repeat: int, max_episode_steps: int | None,
+               render_mode: str | None, render_size: tuple[int, int], camera_id: int) -> None:
+        self.action_repeat = int(action_repeat)
         if self.action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
         if render_mode not in (None, "rgb_array"):
@@ -234,15 +229,18 @@ class DMCEnv(gym.Env):
         self.render_mode = render_mode
         self.render_size = render_size
         self.camera_id = camera_id
-        self._env = _make_dm_env(self.task)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (domain.obs_dim,), np.float32)
-        spec = self._env.action_spec()
-        self.action_space = gym.spaces.Box(spec.minimum.astype(np.float32), spec.maximum.astype(np.float32),
-                                           dtype=np.float32)
+        self._env = env
+        obs_dim = sum(int(np.prod(spec.shape)) for spec in env.observation_spec().values())
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
+        spec = env.action_spec()
+        self._scale = ActionScaler(spec.minimum, spec.maximum, np.float64)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, spec.shape, dtype=np.float32)
         # One frame per agent step: cheetah 25 fps, walker 20 fps at the official action repeats.
-        self.metadata = {**self.metadata, "render_fps": 1.0 / (domain.control_timestep * self.action_repeat)}
+        self.metadata = {**self.metadata, "render_fps": 1.0 / (env.control_timestep() * self.action_repeat)}
         self._steps = 0
         self._needs_reset = True
+        self._terminated = False
+        self._last_obs: np.ndarray | None = None
 
     @property
     def physics(self):
@@ -266,23 +264,26 @@ class DMCEnv(gym.Env):
         time_step = self._env.reset()
         self._steps = 0
         self._needs_reset = False
-        return self._flatten(time_step.observation), {}
+        self._terminated = False
+        self._last_obs = self._flatten(time_step.observation)
+        return self._last_obs.copy(), {}
 
     def step(self, action):
         if self._needs_reset:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action, dtype=np.float64).reshape(self.action_space.shape)
-        action = np.clip(action, self.action_space.low, self.action_space.high)
+        action = self._scale(action)
         reward = 0.0
-        for _ in range(self.action_repeat):
-            time_step = self._env.step(action)
-            reward += time_step.reward or 0.0
-            if time_step.last():  # never with the infinite time limit; kept for a faithful repeat loop
-                self._needs_reset = True
-                break
+        if not self._terminated:
+            for _ in range(self.action_repeat):
+                time_step = self._env.step(action)
+                reward += time_step.reward or 0.0
+                if time_step.last():  # with the infinite time limit, only a task's own termination
+                    self._terminated = True
+                    break
+            self._last_obs = self._flatten(time_step.observation)
         self._steps += 1
         truncated = self.max_episode_steps is not None and self._steps >= self.max_episode_steps
-        return self._flatten(time_step.observation), float(reward), False, bool(truncated), {}
+        return self._last_obs.copy(), float(reward), self._terminated, bool(truncated), {}
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -297,3 +298,129 @@ class DMCEnv(gym.Env):
         with physics._contexts_lock:
             if physics._contexts:
                 physics._free_rendering_contexts()
+
+
+class DMCEnv(_DmControlEnv):
+    """One DeepMind Control task with action repeat, a flat float32 state and external episode length.
+
+    Args:
+        task: a key of :data:`drago.envs.tasks.DMC_TASKS` (e.g. ``"cheetah-run"``) or the task itself.
+        action_repeat: control steps per agent step; rewards are summed over them (None: the domain's
+            official value, 4 cheetah / 2 walker).
+        max_episode_steps: agent steps after which ``step`` reports ``truncated=True`` (None: never).
+            The environment keeps stepping past it; only the caller ends an episode.
+        render_mode: ``"rgb_array"`` to allow :meth:`render`.
+        render_size: (height, width) of rendered frames.
+        camera_id: dm_control camera (0: the tracking camera of both domains).
+
+    Observations are the dm_control observation dict flattened in its order (cheetah: position,
+    velocity; walker: orientations, height, velocity). Actions are clipped to [-1, 1], the actuators'
+    range. ``terminated`` is always False: these tasks never end early.
+    """
+
+    def __init__(self, task: DmcTask | str, action_repeat: int | None = None, max_episode_steps: int | None = None,
+                 render_mode: str | None = None, render_size: tuple[int, int] = (240, 320), camera_id: int = 0):
+        self.task = get_dmc_task(task) if isinstance(task, str) else task
+        domain = DMC_DOMAINS[self.task.domain]
+        self._setup(_make_dm_env(self.task), domain.action_repeat if action_repeat is None else action_repeat,
+                    max_episode_steps, render_mode, render_size, camera_id)
+
+
+# ------------------------------------------------------------------------------------------------
+# Every stock dm_control task: the dmc:DOMAIN domains
+# ------------------------------------------------------------------------------------------------
+DMC_PREFIX = "dmc:"
+#: Agent steps per episode and the action repeat of every ``dmc:`` domain: the suite's 1000 control
+#: steps at TD-MPC's usual action repeat of 2.
+STOCK_ACTION_REPEAT = 2
+STOCK_EPISODE_LENGTH = 500
+
+
+class StockDMCEnv(_DmControlEnv):
+    """A stock dm_control suite task (``suite.load(domain, task)``), its own reward, no time limit.
+
+    Args:
+        domain: A dm_control suite domain, e.g. ``"hopper"``.
+        task: One of its tasks, e.g. ``"stand"``.
+        action_repeat: Control steps per agent step, rewards summed.
+        max_episode_steps: Agent steps after which ``truncated`` is reported (None: never).
+        render_mode: ``"rgb_array"`` to allow :meth:`render`.
+        render_size: (height, width) of rendered frames.
+        camera_id: dm_control camera.
+    """
+
+    def __init__(self, domain: str, task: str, action_repeat: int = STOCK_ACTION_REPEAT,
+                 max_episode_steps: int | None = None, render_mode: str | None = None,
+                 render_size: tuple[int, int] = (240, 320), camera_id: int = 0):
+        self.suite_task = (domain, task)
+        env = suite.load(domain, task, task_kwargs={"time_limit": _INF})
+        self._setup(env, action_repeat, max_episode_steps, render_mode, render_size, camera_id)
+
+
+def _suite_tasks() -> dict[str, list[str]]:
+    tasks: dict[str, list[str]] = {}
+    for domain, task in suite.ALL_TASKS:
+        tasks.setdefault(domain, []).append(task)
+    return tasks
+
+
+_SIZES: dict[tuple[str, str], tuple[int, int]] = {}
+
+
+def stock_task_sizes(domain: str, task: str) -> tuple[int, int]:
+    """(obs_dim, action_dim) of a stock task, read from its specs (one env built, once per process)."""
+    key = (domain, task)
+    if key not in _SIZES:
+        env = suite.load(domain, task, task_kwargs={"time_limit": _INF})
+        _SIZES[key] = (sum(int(np.prod(s.shape)) for s in env.observation_spec().values()),
+                       int(np.prod(env.action_spec().shape)))
+    return _SIZES[key]
+
+
+def stock_problem(name: str) -> str | None:
+    """Why ``name`` is not a ``dmc:DOMAIN`` or ``dmc:DOMAIN-TASK`` domain (one line), or None. Builds nothing."""
+    suite_tasks = _suite_tasks()
+    domain, _, task = name[len(DMC_PREFIX):].partition("-")
+    if domain not in suite_tasks:
+        return (f"unknown domain '{name}': dmc: takes a dm_control suite domain, e.g. dmc:hopper or "
+                f"dmc:quadruped-walk; domains: {', '.join(sorted(suite_tasks))}")
+    if task and task not in suite_tasks[domain]:
+        return (f"unknown domain '{name}': dm_control's {domain} has no task '{task}'; tasks: "
+                f"{', '.join(suite_tasks[domain])}")
+    return None
+
+
+def stock_domain(name: str) -> Domain:
+    """The ``dmc:`` domain ``name``: ``dmc:DOMAIN`` or ``dmc:DOMAIN-TASK``.
+
+    Its tasks, named ``DOMAIN-TASK`` (``hopper-stand``), are the stock tasks of the dm_control domain
+    that share the observation and action sizes of its first task (``dmc:DOMAIN``) or of ``TASK``
+    (``dmc:DOMAIN-TASK``, which comes first): for most domains every task, while finger-spin and
+    finger-turn_easy, say, differ in size and so fall into ``dmc:finger`` and ``dmc:finger-turn_easy``.
+    Building it reads each task's sizes from one env (cached).
+
+    Raises:
+        DomainError: Not a dm_control domain or task (one line listing valid ones).
+    """
+    problem = stock_problem(name)
+    if problem:
+        raise DomainError(problem)
+    domain, _, first = name[len(DMC_PREFIX):].partition("-")
+    stock = _suite_tasks()[domain]
+    first = first or stock[0]
+    sizes = stock_task_sizes(domain, first)
+    members = [first] + [t for t in stock if t != first and stock_task_sizes(domain, t) == sizes]
+    benchmark = {task for d, task in suite.BENCHMARKING if d == domain}
+    tasks = {f"{domain}-{t}": f"stock dm_control {domain} {t}, its own reward"
+             + ("" if t in benchmark else " (extra task)") for t in members}
+    others = [t for t in stock if t not in members]
+
+    def make(task: str, dense_reward: bool | None = None, render_mode: str | None = None,
+             action_repeat: int | None = None, max_episode_steps: int | None = None) -> StockDMCEnv:
+        return StockDMCEnv(domain, task.split("-", 1)[1], action_repeat or STOCK_ACTION_REPEAT,
+                           max_episode_steps, render_mode)
+
+    note = f"; tasks of other sizes: {', '.join(f'dmc:{domain}-{t}' for t in others)}" if others else ""
+    return Domain(name=name, spec=EnvSpec(name, sizes[0], sizes[1], False), tasks=tasks, make=make,
+                  episode_length=STOCK_EPISODE_LENGTH, action_repeat=STOCK_ACTION_REPEAT, requires=("dm_control",),
+                  description=f"dm_control suite {domain}, stock tasks{note}")

@@ -20,22 +20,33 @@ from drago.config import Config, ConfigError, available_presets, describe_settin
 from drago.config import load_config as _load_settings
 from drago.continual import ContinualMethod, TaskState, available_methods, check_method, methods, plugin_problems
 from drago.continual.registry import RegistryError, register_method
+from drago.envs import Domain, DomainError, available_domains, get_domain, gym_domain, register_domain, task_descriptions
+from drago.envs import plugin_problems as _domain_plugin_problems
+from drago.eval.coverage import COVERAGE_FILE, write_coverage_csv
 from drago.eval.coverage import coverage_of_run as coverage
-from drago.eval.heldout import retention_matrix
+from drago.eval.coverage import format_table as format_coverage_table
+from drago.eval.coverage import run_checkpoints as coverage_checkpoints
+from drago.eval.heldout import RETENTION_FILE, retention_matrix, write_retention_csv
+from drago.eval.heldout import format_table as format_retention_table
+from drago.eval.heldout import heldout_checkpoints as retention_checkpoints
 from drago.eval.predictor import WorldModelPredictor, load_world_model
 from drago.report import ReportError, build_report
-from drago.train.checkpoint import CheckpointError
+from drago.train.checkpoint import CheckpointError, NonFiniteCheckpoint
 from drago.train.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
 from drago.train.rundir import RunDirError
 from drago.train.runs import Run
-from drago.train.trainer import Trainer
+from drago.train.trainer import Trainer, TrainingDiverged
 
 __all__ = [
-    "CheckpointError", "Config", "ConfigError", "ContinualMethod", "RegistryError", "ReportError", "Run",
-    "RunDirError", "TaskState", "Trainer", "WorldModelPredictor", "available_methods", "available_presets",
-    "build_report", "coverage", "default_run_dir", "describe_settings", "load_config", "load_world_model",
-    "methods", "new_run", "new_transfer", "plugin_problems", "register_method", "resume", "retention_matrix",
-    "run_paper_cases", "run_transfer", "train",
+    "COVERAGE_FILE", "RETENTION_FILE", "NonFiniteCheckpoint", "TrainingDiverged", "coverage_checkpoints",
+    "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
+    "write_retention_csv",
+    "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "RegistryError",
+    "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor", "available_domains",
+    "available_methods", "available_presets", "build_report", "coverage", "default_run_dir", "describe_settings",
+    "domain_plugin_problems", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
+    "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",
+    "run_paper_cases", "run_transfer", "task_descriptions", "train",
 ]
 
 
@@ -54,6 +65,11 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
         ConfigError: one line naming the bad preset, file and line, key, value or method.
     """
     return check_method(_load_settings(preset, overrides, method=method, seed=seed))
+
+
+def domain_plugin_problems() -> list[str]:
+    """One line per domain plug-in that failed to load and was skipped."""
+    return [str(problem) for problem in _domain_plugin_problems()]
 
 
 def train(cfg: Config, out: str | Path | None = None, force: bool = False, progress: bool = True) -> Run:

@@ -72,8 +72,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from drago.api import load_config
-    from drago.train.run import default_run_dir, new_run
+    from drago.api import default_run_dir, load_config, new_run
 
     if args.seed is not None and args.seed < 0:
         raise UsageError(f"--seed must be a non-negative integer, got {args.seed}")
@@ -100,7 +99,7 @@ def _on_interrupt(how_to_continue: str):
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
-    from drago.train.run import resume
+    from drago.api import resume
 
     trainer = resume(args.run_dir, progress=not args.no_progress)
     done = trainer.completed_tasks()
@@ -115,24 +114,30 @@ def _cmd_resume(args: argparse.Namespace) -> int:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from drago.config import available_presets, describe_settings
-    from drago.continual import METHODS
-    from drago.envs import DMC_SEQUENCES, DOMAINS, GRID_SEQUENCES, task_descriptions
+    from drago.api import (available_domains, available_presets, describe_settings, domain_plugin_problems,
+                           get_domain, methods, plugin_problems, task_descriptions)
 
-    print("presets:  " + ", ".join(available_presets()))
+    print("presets:  " + ", ".join(available_presets()) + " (or a path to a YAML file)")
     print("methods:")
-    for name, cls in METHODS.items():
+    for name, cls in methods().items():
         print(f"  {name:<20} {cls.description}")
-    tasks = {domain: task_descriptions(domain) for domain in DOMAINS}
+    domains = {name: get_domain(name) for name in available_domains()}
+    tasks = {name: task_descriptions(name) for name in domains}
     width = max(len(name) for rows in tasks.values() for name, _ in rows)
-    for domain, rows in tasks.items():
-        print(f"tasks ({domain}, env.domain={domain}):")
-        for name, description in rows:
-            print(f"  {name:<{width}}  {description}")
-    sequences = {**GRID_SEQUENCES, **DMC_SEQUENCES}
+    for name, rows in tasks.items():
+        print(f"tasks ({name}, env.domain={name}):")
+        for task, description in rows:
+            print(f"  {task:<{width}}  {description}")
+    print("  (every stock DeepMind Control task too: env.domain=dmc:DOMAIN, e.g. dmc:hopper with hopper-stand)")
     print("sequences:")
-    for name, sequence in sequences.items():
-        print(f"  {name:<{width}}  {' -> '.join(sequence)}")
+    for domain in domains.values():
+        for name, sequence in domain.sequences.items():
+            print(f"  {name:<{width}}  {' -> '.join(sequence)}")
+    problems = [*plugin_problems(), *domain_plugin_problems()]
+    if problems:
+        print("plug-ins skipped:")
+        for problem in problems:
+            print(f"  {problem}")
     if args.settings:
         print("settings (key, type, default):")
         for key, kind, default in describe_settings():
@@ -141,22 +146,22 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval_coverage(args: argparse.Namespace) -> int:
-    from drago.eval.coverage import COVERAGE_FILE, coverage_of_run, format_table, run_checkpoints, write_coverage_csv
+    from drago.api import COVERAGE_FILE, coverage, coverage_checkpoints, format_coverage_table, write_coverage_csv
 
-    return _evaluate_runs(args, check=run_checkpoints, measure=coverage_of_run, write=write_coverage_csv,
+    return _evaluate_runs(args, check=coverage_checkpoints, measure=coverage, write=write_coverage_csv,
                           filename=COVERAGE_FILE, title="exact-match accuracy of the world model after each task:",
-                          table=format_table)
+                          table=format_coverage_table)
 
 
 def _cmd_eval_heldout(args: argparse.Namespace) -> int:
-    from drago.eval.heldout import (RETENTION_FILE, format_table, heldout_checkpoints, retention_matrix,
-                                    write_retention_csv)
+    from drago.api import (RETENTION_FILE, format_retention_table, retention_checkpoints, retention_matrix,
+                           write_retention_csv)
 
-    return _evaluate_runs(args, check=heldout_checkpoints,
+    return _evaluate_runs(args, check=retention_checkpoints,
                           measure=lambda run_dir: retention_matrix(run_dir, record_missing=True),
                           write=write_retention_csv, filename=RETENTION_FILE,
                           title="prediction score -log(MSE) of the world model after each stage (rows) "
-                                "on each task's held-out set:", table=format_table)
+                                "on each task's held-out set:", table=format_retention_table)
 
 
 def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: str, title: str, table) -> int:
@@ -221,7 +226,7 @@ def _add_transfer_parser(sub) -> None:
 
 
 def _cmd_transfer(args: argparse.Namespace) -> int:
-    from drago.train.run import new_transfer, run_paper_cases, run_transfer
+    from drago.api import new_transfer, run_paper_cases, run_transfer
 
     if args.paper_cases and (args.task is not None or args.after is not None):
         raise UsageError("--paper-cases chooses the tasks and stages itself; drop --task and --after")
@@ -261,7 +266,7 @@ def _add_report_parser(sub) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from drago.report import build_report
+    from drago.api import build_report
 
     for path in build_report(args.run_dirs, args.out):
         print(f"wrote {path}")
@@ -364,10 +369,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    from drago.config import ConfigError
-    from drago.train.checkpoint import CheckpointError, NonFiniteCheckpoint
-    from drago.train.rundir import RunDirError
-    from drago.train.trainer import TrainingDiverged
+    from drago.api import CheckpointError, ConfigError, NonFiniteCheckpoint, RunDirError, TrainingDiverged
 
     try:
         args, extra = _parser().parse_known_args(argv)

@@ -25,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from drago.envs import DOMAINS, available_tasks
+from drago.envs import available_domains, available_tasks, get_domain, is_domain
 
 
 class ConfigError(ValueError):
@@ -36,7 +36,9 @@ class ConfigError(ValueError):
 class EnvConfig:
     """Which world and which sequence of tasks."""
 
-    domain: str = "minigrid"  # minigrid, cheetah or walker (DeepMind Control; needs the dmc extra)
+    # minigrid, cheetah or walker (DeepMind Control; needs the dmc extra), a registered domain (`drago list`),
+    # or dmc:DOMAIN for a stock DeepMind Control domain (docs: Environments and tasks)
+    domain: str = "minigrid"
     tasks: tuple[str, ...] = ("room1", "room2", "room3", "room4")  # the continual sequence, in order
     dense_reward: bool | None = None  # grid only; None: each task's own default (training dense, test tasks sparse)
     episode_length: int = 100  # agent steps per episode
@@ -82,7 +84,9 @@ class AgentConfig:
     std_schedule_start: float = 0.5  # CEM std floor, linear start -> min_std over std_schedule_steps
     std_schedule_steps: int = 50_000
     seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
-    random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)  # grid seed-phase (left, right, forward)
+    # Seed-phase probabilities of a discrete domain's actions, used when there is one per action (the grid's
+    # left, right, forward); other discrete domains, or an empty list, draw uniformly.
+    random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)
     # Speed (docs: Speed and precision). bfloat16: autocast of the networks' hidden layers in updates
     # and planning; output layers, losses, TD targets and optimizer state stay float32.
     precision: str = "float32"  # float32 or bfloat16
@@ -491,15 +495,18 @@ def _check_ranges(cfg: Config) -> None:
 
 def _check_domain_and_tasks(cfg: Config) -> None:
     env = cfg.env
-    if env.domain not in DOMAINS:
-        raise ConfigError(f"unknown domain '{env.domain}'; valid domains: {', '.join(DOMAINS)}")
+    if not is_domain(env.domain):
+        raise ConfigError(f"unknown domain '{env.domain}'; valid domains: {', '.join(available_domains())}, "
+                          "or dmc:DOMAIN for a stock DeepMind Control domain")
+    domain = get_domain(env.domain)
     if env.domain == "minigrid" and env.action_repeat != 1:
         raise ConfigError(f"setting 'env.action_repeat' must be 1 for the grid, got {env.action_repeat}")
-    if env.domain != "minigrid" and env.dense_reward is not None:
+    if not domain.dense_reward and env.dense_reward is not None:
         raise ConfigError(f"setting 'env.dense_reward' applies to the grid only; leave it unset for {env.domain}")
-    if env.domain != "minigrid" and importlib.util.find_spec("dm_control") is None:
-        raise ConfigError(f"domain {env.domain} needs dm_control, which is not installed: "
-                          "pip install -e '.[dmc]' (scripts/setup.sh installs it)")
+    for module in domain.requires:
+        if importlib.util.find_spec(module) is None:
+            raise ConfigError(f"domain {env.domain} needs {module}, which is not installed: "
+                              "pip install -e '.[dmc]' (scripts/setup.sh installs it)")
     if not env.tasks:
         raise ConfigError("env.tasks is empty; name at least one task")
     valid_tasks = available_tasks(env.domain)
@@ -527,8 +534,8 @@ def _check_relations(cfg: Config) -> None:
         raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must exceed agent.horizon "
                           f"({agent.horizon}) so that training sequences fit inside an episode")
     probs = agent.random_action_probs
-    if len(probs) != 3 or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
-        raise ConfigError(f"agent.random_action_probs must be three non-negative numbers summing to 1, got {probs}")
+    if probs and (min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6):
+        raise ConfigError(f"agent.random_action_probs must be non-negative numbers summing to 1, got {probs}")
     if not 0.0 <= cfg.method.replay_fraction < 1.0:
         # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
         raise ConfigError(f"setting 'method.replay_fraction' must lie in [0, 1), got {cfg.method.replay_fraction}")

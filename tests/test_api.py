@@ -185,3 +185,4 @@ def test_run_reads_config_results_logs_and_world_models(smoke_runs):
 def test_run_of_a_folder_that_is_not_a_run_says_so(tmp_path):
     with pytest.raises(api.RunDirError, match="is not a drago run directory"):
         api.Run(tmp_path)
+

@@ -286,12 +286,12 @@ def test_interrupted_train_and_resume_name_the_run_to_continue(tmp_path, capsys,
 
 @pytest.mark.parametrize("force", [False, True])
 def test_interrupted_paper_cases_say_how_to_continue(force, tmp_path, capsys, monkeypatch):
-    from drago.train import run
+    from drago import api
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(run, "run_paper_cases", interrupted)
+    monkeypatch.setattr(api, "run_paper_cases", interrupted)
     argv = ["transfer", str(tmp_path), "--paper-cases", *(["--force"] if force else [])]
     assert cli.main(argv) == 130
     again = "again without --force" if force else "again"

@@ -38,6 +38,17 @@ def _float32_bonus(bonus: RewardBonus) -> RewardBonus:
     return call
 
 
+def random_action(rng: np.random.Generator, action_dim: int, discrete: bool,
+                  probs: tuple[float, ...] = ()) -> np.ndarray:
+    """A seed-phase action: uniform in [-1, 1], or a one-hot drawn with ``probs`` when they name every
+    action (the grid's left, right, forward) and uniformly otherwise (any other discrete domain)."""
+    if not discrete:
+        return rng.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
+    action = np.zeros(action_dim, dtype=np.float32)
+    action[rng.choice(action_dim, p=np.asarray(probs) if len(probs) == action_dim else None)] = 1.0
+    return action
+
+
 class Agent:
     """TD-MPC heads (reward, policy, twin Q) trained and planned against a given world model.
 
@@ -110,13 +121,7 @@ class Agent:
         return action.cpu().numpy()  # the environment needs it on the host: the one sync per step
 
     def random_action(self, rng: np.random.Generator) -> np.ndarray:
-        """Seed-phase action: a one-hot with the configured probabilities, or uniform in [-1, 1]."""
-        n = self.world_model.action_dim
-        if self.discrete:
-            action = np.zeros(n, dtype=np.float32)
-            action[rng.choice(n, p=np.asarray(self.cfg.random_action_probs))] = 1.0
-            return action
-        return rng.uniform(-1.0, 1.0, size=n).astype(np.float32)
+        return random_action(rng, self.world_model.action_dim, self.discrete, self.cfg.random_action_probs)
 
     # ---------------------------------------------------------------- learning
     def rollout(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:

@@ -30,6 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from drago.agent.agent import random_action
+
 __all__ = [
     "PROPAGATION_MODES",
     "BatchedLinear",
@@ -624,13 +626,7 @@ class PetsAgent:
         return result.action.cpu().numpy()
 
     def random_action(self, rng: np.random.Generator) -> np.ndarray:
-        """Seed-phase action: a one-hot with the configured probabilities, or uniform in [-1, 1]."""
-        n = self.world_model.action_dim
-        if self.discrete:
-            action = np.zeros(n, dtype=np.float32)
-            action[rng.choice(n, p=np.asarray(self.cfg.random_action_probs))] = 1.0
-            return action
-        return rng.uniform(-1.0, 1.0, size=n).astype(np.float32)
+        return random_action(rng, self.world_model.action_dim, self.discrete, self.cfg.random_action_probs)
 
     # ---------------------------------------------------------------- learning
     @staticmethod

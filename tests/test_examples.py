@@ -1,0 +1,79 @@
+"""The example plug-in package (examples/drago-example), installed into a virtual environment of its own:
+drago finds its method and its domain through entry points, trains them, resumes after a kill and reports.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import sysconfig
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "drago-example"
+QUIET = ["--no-progress", "train.tensorboard=false"]
+
+
+@pytest.fixture(scope="module")
+def venv(tmp_path_factory) -> Path:
+    """A new virtual environment that sees this one's packages (torch, drago) and has the example installed,
+    as `pip install ./examples/drago-example` would do, without the network."""
+    root = tmp_path_factory.mktemp("example-venv") / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(root)], check=True)
+    site = next((root / "lib").glob("python*/site-packages"))
+    # The packages of the environment running the tests, .pth files included (drago is installed editable).
+    (site / "parent_environment.pth").write_text(f"import site; site.addsitedir({sysconfig.get_path('purelib')!r})\n")
+    python = root / "bin" / "python"
+    install = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                              "--disable-pip-version-check", str(EXAMPLE)], capture_output=True, text=True)
+    assert install.returncode == 0, install.stderr
+    return root
+
+
+def drago(venv: Path, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run([str(venv / "bin" / "python"), "-m", "drago", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+def test_drago_lists_the_plugins_method_and_domain(venv):
+    listing = drago(venv, "list")
+    assert listing.returncode == 0, listing.stderr
+    assert "l2-anchor" in listing.stdout and "two-pendulums" in listing.stdout
+    assert "warning" not in listing.stderr
+
+
+def test_the_plugins_method_trains_resumes_after_a_kill_and_reports(venv, tmp_path):
+    run = tmp_path / "anchor"
+    argv = [str(venv / "bin" / "python"), "-m", "drago", "train", "smoke", "--method", "l2-anchor", "--out", str(run),
+            *QUIET, "env.tasks=[room1,room2]"]
+    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    resume_checkpoint = run / "checkpoints" / "resume.pt"
+    deadline = time.monotonic() + 240
+    # Killed in task 2, once its periodic checkpoint exists: the first task's anchor must survive the kill.
+    while not (resume_checkpoint.is_file() and (run / "checkpoints" / "task1_room1.pt").is_file()):
+        assert process.poll() is None, process.stdout.read()
+        assert time.monotonic() < deadline, "no checkpoint in task 2 within 240 s"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=30)
+    resumed = drago(venv, "resume", str(run), "--no-progress")
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    report = drago(venv, "report", str(run), "--out", str(tmp_path / "report"))
+    assert report.returncode == 0, report.stderr
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "l2-anchor" in text and "room2" in text
+
+
+def test_the_plugins_domain_trains_a_two_task_sequence(venv, tmp_path):
+    run = tmp_path / "pendulums"
+    trained = drago(venv, "train", "smoke", "--method", "drago", "--out", str(run), *QUIET,
+                    "env.domain=two-pendulums", "env.tasks=[swingup,spin]", "env.episode_length=50",
+                    "train.steps_per_task=200", "agent.seed_steps=100", "train.heldout_episodes=1")
+    assert trained.returncode == 0, trained.stdout + trained.stderr
+    assert (run / "checkpoints" / "task2_spin.pt").is_file() and (run / "heldout" / "task2_spin.npz").is_file()

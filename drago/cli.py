@@ -281,11 +281,13 @@ def _add_study_parser(sub) -> None:
     study = sub.add_parser(
         "study", help="the grid study in one command: methods x seeds, their transfer cases, one report",
         usage="drago study [PRESET] [--methods M ...] [--seeds S ...] [--out DIR] [--jobs N] "
-              "[--transfer-episodes N] [--transfer-eval-every N] [--no-transfer] [--dry-run] [key=value ...]",
+              "[--transfer-episodes N] [--transfer-eval-every N] [--no-transfer] [--dry-run | --status | "
+              "--report-only] [--backend {local,slurm}] [--wait] [SLURM options] [key=value ...]",
         description="Runs every method x seed on the preset's sequence into OUT/METHOD/seedS, the paper's "
                     "transfer cases of each run (as `drago transfer --paper-cases`), then `drago report` into "
                     "OUT/report. Finished work is skipped and interrupted work resumed, so after any crash "
-                    "the same command finishes the study. Prints the plan first.",
+                    "the same command finishes the study. Prints the plan first. With --backend slurm the jobs "
+                    "are SLURM batch jobs and the command returns once they are submitted.",
         epilog="key=value overrides apply to every run. A directory holding a run with other settings is an "
                "error: choose another --out or delete it.")
     study.add_argument("preset", nargs="?", default=None, help="preset of every run (default minigrid-cpu)")
@@ -294,25 +296,62 @@ def _add_study_parser(sub) -> None:
                             "drago-no-reviewer)")
     study.add_argument("--seeds", nargs="+", default=None, metavar="S", help="seeds or ranges like 1-3 (default 1 2 3)")
     study.add_argument("--out", type=Path, default=None, metavar="DIR", help="study folder (default runs/study/PRESET)")
-    study.add_argument("--jobs", type=int, default=1, metavar="N",
-                       help="runs at a time, each with cores/N torch threads (default 1)")
+    study.add_argument("--jobs", type=int, default=None, metavar="N",
+                       help="local: runs at a time, each with cores/N torch threads (default 1); slurm: the most "
+                            "SLURM jobs of the study running at once (default: no cap)")
     study.add_argument("--transfer-episodes", type=int, default=None, metavar="N",
                        help="learner episodes of each transfer case (default 20)")
     study.add_argument("--transfer-eval-every", type=int, default=1, metavar="N",
                        help="evaluate each transfer after every N learner episodes (default 1; DeepMind Control "
                             "evaluations are costly, 5 still reads both few-shot scores)")
     study.add_argument("--no-transfer", action="store_true", help="sequence runs and report only")
-    study.add_argument("--dry-run", action="store_true", help="print the plan, run nothing")
+    study.add_argument("--dry-run", action="store_true",
+                       help="print the plan (with --backend slurm: the sbatch options of every job), run nothing")
+    study.add_argument("--status", action="store_true",
+                       help="what is queued, running, done and failed, from SLURM and the run directories; "
+                            "runs nothing")
+    study.add_argument("--report-only", action="store_true", help="write the report from what is on disk; runs nothing")
+    study.add_argument("--backend", choices=("local", "slurm"), default="local",
+                       help="local: child processes on this machine (default); slurm: SLURM batch jobs, "
+                            "submitted with submitit (pip install -e '.[slurm]')")
+    study.add_argument("--wait", action="store_true",
+                       help="slurm: follow the jobs until they end, one line per finished job (the local "
+                            "backend always does)")
+    slurm = study.add_argument_group("SLURM options (--backend slurm; see docs: Running on a cluster)")
+    slurm.add_argument("--partition", default=None, metavar="P", help="partition of every job")
+    slurm.add_argument("--account", default=None, metavar="A", help="account to charge")
+    slurm.add_argument("--qos", default=None, metavar="Q", help="quality of service")
+    slurm.add_argument("--time", default=None, metavar="T",
+                       help="time limit per job, minutes or [D-]HH:MM:SS (default 60); a job near it is "
+                            "requeued and resumes from its last checkpoint")
+    slurm.add_argument("--cpus", type=int, default=None, metavar="N",
+                       help="CPUs per job (default 1); new runs get train.threads = N / runs per job")
+    slurm.add_argument("--gpus", type=int, default=None, metavar="N",
+                       help="GPUs per job (default 0); runs then get train.device=cuda, one GPU each")
+    slurm.add_argument("--jobs-per-gpu", type=int, default=None, metavar="K",
+                       help="runs sharing one GPU: a job with N GPUs runs N x K runs side by side (default 1)")
+    slurm.add_argument("--mem", default=None, metavar="SIZE",
+                       help="memory per job, e.g. 16G (default: the partition's)")
+    slurm.add_argument("--sbatch", action="append", default=[], metavar="OPTIONS",
+                       help="further sbatch options for every job, e.g. --sbatch='--constraint=a100 --exclude=n3' "
+                            "(repeatable)")
+
+
+_SLURM_ONLY = (("--partition", "partition"), ("--account", "account"), ("--qos", "qos"), ("--time", "time"),
+               ("--cpus", "cpus"), ("--gpus", "gpus"), ("--jobs-per-gpu", "jobs_per_gpu"), ("--mem", "mem"),
+               ("--sbatch", "sbatch"))
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
-    from drago.study import (DEFAULT_EPISODES, DEFAULT_METHODS, DEFAULT_PRESET, DEFAULT_SEEDS, describe_plan,
-                             parse_seeds, plan_study, run_study)
+    from drago import study_slurm
+    from drago.study import (DEFAULT_EPISODES, DEFAULT_METHODS, DEFAULT_PRESET, DEFAULT_SEEDS, default_study_dir,
+                             describe_plan, parse_seeds, plan_study, run_study, write_report)
 
     overrides, preset = list(args.overrides), args.preset
     if preset is not None and "=" in preset:  # `drago study key=value`: no preset named
         overrides.insert(0, preset)
         preset = None
+    preset = preset or DEFAULT_PRESET
     # --methods/--seeds take every following word; key=value ones are overrides.
     methods = [m for m in args.methods or () if "=" not in m]
     seeds = [s for s in args.seeds or () if "=" not in s]
@@ -321,17 +360,67 @@ def _cmd_study(args: argparse.Namespace) -> int:
         raise UsageError("--methods needs at least one method (see `drago list`)")
     if args.seeds is not None and not seeds:
         raise UsageError("--seeds needs at least one seed")
-    plan = plan_study(preset or DEFAULT_PRESET, methods or DEFAULT_METHODS,
-                      parse_seeds(seeds) if seeds else DEFAULT_SEEDS, out=args.out, overrides=overrides,
-                      jobs=args.jobs, transfers=not args.no_transfer,
+    modes = [flag for flag, on in (("--dry-run", args.dry_run), ("--status", args.status),
+                                   ("--report-only", args.report_only)) if on]
+    if len(modes) > 1:
+        raise UsageError(f"{modes[0]} and {modes[1]} do not go together")
+    slurm = args.backend == "slurm"
+    out, jobs, cores, options = args.out, (1 if args.jobs is None else args.jobs), None, None
+    if slurm:
+        options = study_slurm.make_options(partition=args.partition, account=args.account, qos=args.qos,
+                                           time=args.time, cpus=args.cpus, gpus=args.gpus, mem=args.mem,
+                                           sbatch=args.sbatch, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu)
+        if not (args.status or args.report_only):
+            study_slurm.require_submitit()
+        # The jobs run elsewhere: every path they are given is absolute.
+        out = (out or default_study_dir(preset)).absolute()
+        overrides = study_slurm.job_overrides(options, overrides)
+        jobs, cores = options.runs_per_job, max(options.cpus, options.runs_per_job)  # threads = CPUs / runs, >= 1
+    else:
+        given = [flag for flag, name in _SLURM_ONLY if getattr(args, name) not in (None, [])]
+        if given:
+            raise UsageError(f"{given[0]} is a SLURM option: add --backend slurm")
+    plan = plan_study(preset, methods or DEFAULT_METHODS, parse_seeds(seeds) if seeds else DEFAULT_SEEDS, out=out,
+                      overrides=overrides, jobs=jobs, transfers=not args.no_transfer,
                       transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes,
-                      transfer_eval_every=args.transfer_eval_every)
-    for line in describe_plan(plan, verbose=args.dry_run):
-        print(line, flush=True)
-    if args.dry_run:
+                      transfer_eval_every=args.transfer_eval_every, cores=cores, check_settings=not args.status)
+    echo = lambda line: print(line, flush=True)  # noqa: E731
+    if args.status:
+        for line in study_slurm.status_lines(plan):
+            echo(line)
         return 0
-    with _on_interrupt("run the same `drago study` command again to continue"):
-        result = run_study(plan, echo=lambda line: print(line, flush=True))
+    if args.report_only:
+        _, error = write_report(plan, echo)
+        if error:
+            print(f"drago: no report: {error}", file=sys.stderr)
+            return 1
+        return 0
+    resources = study_slurm.describe_resources(options, plan) if slurm else None
+    for line in describe_plan(plan, verbose=args.dry_run, resources=resources):
+        echo(line)
+    if args.dry_run:
+        if slurm:
+            for line in study_slurm.describe_submission(plan, options):
+                echo(line)
+        return 0
+    if slurm:
+        with _on_interrupt("run the same `drago study` command again: it submits what is missing, never a "
+                           "job SLURM still has"):
+            submission = study_slurm.submit_study(plan, options, echo=echo)
+        if submission.report_error:
+            print(f"drago: no report: {submission.report_error}", file=sys.stderr)
+            return 1
+        if not args.wait:
+            return 0
+        with _on_interrupt("the jobs carry on in SLURM; the same command with --status shows them"):
+            result = study_slurm.wait_study(submission, echo=echo)
+    else:
+        active = study_slurm.active_job_ids(plan.out)
+        if active:
+            raise UsageError(f"SLURM jobs of this study are queued or running in {plan.out} (jobs "
+                             f"{', '.join(active)}); follow them with --backend slurm --status, or scancel them first")
+        with _on_interrupt("run the same `drago study` command again to continue"):
+            result = run_study(plan, echo=echo)
     if not result.ok:
         print(f"drago: {result.summary_line()}", file=sys.stderr)
         return 1

@@ -19,6 +19,7 @@ work. A directory holding a run with other settings than the study's is an error
 Jobs run as child processes, ``jobs`` at a time, each new run with ``train.threads`` = cores // jobs;
 each child's output goes to ``OUT/logs/``. A child dies with the study (Linux), so a restarted study
 never races an orphan for a run directory, and a lock file keeps two studies out of one folder.
+On a SLURM cluster the same plan runs as batch jobs instead (:mod:`drago.study_slurm`).
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ from drago.train.rundir import RunDirError, config_diffs, is_complete, is_run_di
 from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule, plan_transfer
 
 __all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
-           "default_study_dir", "describe_plan", "parse_seeds", "plan_study", "run_study"]
+           "default_study_dir", "describe_plan", "directory_state", "parse_seeds", "plan_study", "run_study",
+           "write_report"]
 
 DEFAULT_PRESET = "minigrid-cpu"
 DEFAULT_METHODS = ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer")
@@ -163,12 +165,26 @@ class StudyPlan:
         return order
 
 
-def _state(directory: Path, wanted: Callable[[], Config], what: str) -> tuple[str, Config | None]:
-    """START, RESUME or DONE for ``directory``, and the config it holds; refuses other settings."""
+def directory_state(directory: Path) -> str:
+    """START (missing or empty), DONE (its summary says complete) or RESUME (anything else) for a job's directory.
+
+    What a study job does is decided from this alone, at plan time and again when a SLURM job starts or is
+    requeued: ``drago train`` / ``drago transfer``, ``drago resume``, or nothing.
+    """
+    directory = Path(directory)
+    if not directory.is_dir() or not any(directory.iterdir()):
+        return START
+    return DONE if is_complete(directory) else RESUME
+
+
+def _state(directory: Path, wanted: Callable[[], Config], what: str, check: bool = True) -> tuple[str, Config | None]:
+    """START, RESUME or DONE for ``directory``, and the config it holds; refuses other settings (if ``check``)."""
     if not directory.is_dir() or not any(directory.iterdir()):
         if directory.exists() and not directory.is_dir():
             raise StudyError(f"{directory} is a file, not a run directory; delete it or choose another --out")
         return START, None
+    if not check:
+        return directory_state(directory), None
     if not is_run_dir(directory):
         raise StudyError(f"{directory} is not empty and not a drago run; delete it or choose another --out")
     existing = read_run_config(directory)
@@ -188,7 +204,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                seeds: Sequence[int] = DEFAULT_SEEDS, out: str | Path | None = None,
                overrides: Sequence[str] = (), jobs: int = 1, transfers: bool = True,
                transfer_episodes: int = DEFAULT_EPISODES, transfer_eval_every: int = 1,
-               cores: int | None = None) -> StudyPlan:
+               cores: int | None = None, check_settings: bool = True) -> StudyPlan:
     """Work out what a study still has to do, from its directories.
 
     Args:
@@ -203,6 +219,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         transfer_episodes: Learner episodes of each transfer case.
         transfer_eval_every: Evaluate each transfer after every this many learner episodes.
         cores: CPU cores to share (default: those this process may use).
+        check_settings: Refuse directories holding runs with other settings (off for ``--status``, which
+            only reads what is there).
 
     Raises:
         StudyError: A bad argument, or a directory holding something other than what the study would
@@ -249,7 +267,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
             cfg = check_method(load_config(preset, overrides, method=method, seed=seed))
             run_dir = out / method / f"seed{seed}"
             label = f"{method} seed{seed}"
-            state, existing = _state(run_dir, lambda cfg=cfg: cfg, "run")
+            state, existing = _state(run_dir, lambda cfg=cfg: cfg, "run", check_settings)
             argv = {START: ["train", preset, "--method", method, "--seed", str(seed), "--out", str(run_dir),
                             "--no-progress", *overrides],
                     RESUME: ["resume", str(run_dir), "--no-progress"], DONE: []}[state]
@@ -258,7 +276,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                       source_cfg.train.threads)
             plan.runs.append(run)
             for task, after in kept:
-                plan.transfers.append(_transfer_job(run, task, after, transfer_episodes, transfer_eval_every, logs))
+                plan.transfers.append(_transfer_job(run, task, after, transfer_episodes, transfer_eval_every, logs,
+                                                    check_settings))
     resumed = sorted({j.threads for j in plan.runs if j.state == RESUME and j.threads != plan.threads})
     if resumed:
         plan.notes.append(f"interrupted runs keep the train.threads they started with "
@@ -266,14 +285,15 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     return plan
 
 
-def _transfer_job(run: Job, task: str, after: int, episodes: int, eval_every: int, logs: Path) -> Job:
+def _transfer_job(run: Job, task: str, after: int, episodes: int, eval_every: int, logs: Path,
+                  check: bool = True) -> Job:
     case_dir = default_transfer_dir(run.directory, task, after)
 
     def wanted() -> Config:
         # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N` would write.
         return plan_transfer(run.directory, task, after, None, episodes=episodes, eval_every=eval_every)[0]
 
-    state, _ = _state(case_dir, wanted, "transfer")
+    state, _ = _state(case_dir, wanted, "transfer", check)
     argv = {START: ["transfer", str(run.directory), "--task", task, "--after", str(after), "--episodes", str(episodes),
                     "--eval-every", str(eval_every), "--no-progress"],
             RESUME: ["resume", str(case_dir), "--no-progress"], DONE: []}[state]
@@ -325,8 +345,12 @@ def _estimate(plan: StudyPlan) -> str | None:
             f"{' and '.join(basis)}{rest})")
 
 
-def describe_plan(plan: StudyPlan, verbose: bool = False) -> list[str]:
-    """The plan as console lines; ``verbose`` adds one line per run."""
+def describe_plan(plan: StudyPlan, verbose: bool = False, resources: Sequence[str] | None = None) -> list[str]:
+    """The plan as console lines; ``verbose`` adds one line per run.
+
+    ``resources`` replaces the line on local jobs and cores (and the time estimate, which assumes them):
+    a SLURM study describes its batch jobs instead.
+    """
     n_runs = len(plan.runs)
     lines = [f"drago study {plan.preset} into {plan.out}: {len(plan.methods)} method{'s' * (len(plan.methods) != 1)}"
              f" x {len(plan.seeds)} seed{'s' * (len(plan.seeds) != 1)} = {n_runs} run{'s' * (n_runs != 1)} of "
@@ -339,11 +363,14 @@ def describe_plan(plan: StudyPlan, verbose: bool = False) -> list[str]:
                   f"{plan.transfer_episodes} learner episode{'s' * (plan.transfer_episodes != 1)} each, "
                   f"evaluated after every {'' if plan.transfer_eval_every == 1 else f'{plan.transfer_eval_every} '}"
                   f"episode{'s' * (plan.transfer_eval_every != 1)}"]
-    lines.append(f"  jobs:      {plan.jobs} at a time on {plan.cores} core{'s' * (plan.cores != 1)}, new runs with "
-                 f"train.threads={plan.threads}; each job's output in {plan.out / LOG_FOLDER}/")
-    estimate = _estimate(plan)
-    if estimate:
-        lines.append(f"  time:      {estimate}")
+    if resources is None:
+        lines.append(f"  jobs:      {plan.jobs} at a time on {plan.cores} core{'s' * (plan.cores != 1)}, new runs with "
+                     f"train.threads={plan.threads}; each job's output in {plan.out / LOG_FOLDER}/")
+        estimate = _estimate(plan)
+        if estimate:
+            lines.append(f"  time:      {estimate}")
+    else:
+        lines += resources
     report = f"{plan.report_dir / 'report.html'} and report.md"
     if plan.cases:
         report += f", with {TRANSFERS_CSV} and {TRANSFERS_MD} for the transfers"
@@ -560,6 +587,15 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
 # ---------------------------------------------------------------------------------------------------
 # report
 # ---------------------------------------------------------------------------------------------------
+def write_report(plan: StudyPlan, echo: Callable[[str], None] = print) -> tuple[list[Path], str | None]:
+    """The study's report from what is on disk (``drago study --report-only``, a SLURM study's last job).
+
+    Returns:
+        The files written, and why none were (None when written).
+    """
+    return _write_report(plan, echo)
+
+
 def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Path], str | None]:
     from drago.report import build_report, write_transfer_tables
     from drago.train.checkpoint import CheckpointError

@@ -20,7 +20,7 @@ fi
 stamp=.venv/.drago-install-stamp
 want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dmc,test,docs]'
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dmc,test,docs,slurm]'
     echo "$want" > "$stamp"
 fi
 

@@ -16,11 +16,21 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import drago.study as study  # studies: plan_study, run_study, describe_plan, ...
+import drago.study_slurm as study_slurm  # the SLURM backend of drago study
 from drago.config import Config, ConfigError, available_presets, describe_settings
 from drago.config import load_config as _load_settings
 from drago.continual import ContinualMethod, TaskState, available_methods, check_method, methods, plugin_problems
 from drago.continual.registry import RegistryError, register_method
-from drago.envs import Domain, DomainError, available_domains, get_domain, gym_domain, register_domain, task_descriptions
+from drago.envs import (
+    Domain,
+    DomainError,
+    available_domains,
+    get_domain,
+    gym_domain,
+    register_domain,
+    task_descriptions,
+)
 from drago.envs import plugin_problems as _domain_plugin_problems
 from drago.eval.coverage import COVERAGE_FILE, write_coverage_csv
 from drago.eval.coverage import coverage_of_run as coverage
@@ -46,7 +56,7 @@ __all__ = [
     "available_methods", "available_presets", "build_report", "coverage", "default_run_dir", "describe_settings",
     "domain_plugin_problems", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
     "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",
-    "run_paper_cases", "run_transfer", "task_descriptions", "train",
+    "run_paper_cases", "run_transfer", "study", "study_slurm", "task_descriptions", "train",
 ]
 
 

@@ -343,9 +343,12 @@ _SLURM_ONLY = (("--partition", "partition"), ("--account", "account"), ("--qos",
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
-    from drago import study_slurm
-    from drago.study import (DEFAULT_EPISODES, DEFAULT_METHODS, DEFAULT_PRESET, DEFAULT_SEEDS, default_study_dir,
-                             describe_plan, parse_seeds, plan_study, run_study, write_report)
+    from drago.api import study, study_slurm
+
+    DEFAULT_EPISODES, DEFAULT_METHODS = study.DEFAULT_EPISODES, study.DEFAULT_METHODS
+    DEFAULT_PRESET, DEFAULT_SEEDS = study.DEFAULT_PRESET, study.DEFAULT_SEEDS
+    default_study_dir, describe_plan, parse_seeds = study.default_study_dir, study.describe_plan, study.parse_seeds
+    plan_study, run_study, write_report = study.plan_study, study.run_study, study.write_report
 
     overrides, preset = list(args.overrides), args.preset
     if preset is not None and "=" in preset:  # `drago study key=value`: no preset named

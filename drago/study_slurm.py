@@ -49,7 +49,7 @@ from typing import Any
 
 from drago.study import (DONE, LOCK_FILE, LOG_FOLDER, PARENT_ENV, RESUME, START, Job, StudyError, StudyPlan,
                          _duration, _lock, _outcome, _wall_time, directory_state, write_report)
-from drago.train.rundir import atomic_write_text
+from drago.train.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
 
 __all__ = ["SlurmOptions", "SlurmResult", "StudyJob", "Submission", "active_job_ids", "describe_resources",
            "describe_submission", "job_overrides", "make_options", "parse_time", "require_submitit", "status_lines",
@@ -379,7 +379,7 @@ def _ignore_requeue_signal() -> None:  # in the child before exec: the USR2 is f
 def _progress_mark(directory: str) -> tuple[float, ...]:
     """When the directory's checkpoints and summary last changed (a new one means the run got further)."""
     folder = Path(directory)
-    paths = [folder / "summary.json", *sorted((folder / "checkpoints").glob("*.pt"))]
+    paths = [folder / SUMMARY_FILE, *sorted((folder / CHECKPOINT_FOLDER).glob("*.pt"))]
     marks = []
     for path in paths:
         with contextlib.suppress(OSError):

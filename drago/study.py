@@ -404,20 +404,31 @@ class StudyResult:
         return not self.failed and not self.blocked and self.report_error is None
 
     def summary_line(self) -> str:
-        if self.ok:
-            skipped = sum(j.state == DONE for j in self.plan.ordered)
-            return (f"study complete: {len(self.finished)} job{'s' * (len(self.finished) != 1)} run, {skipped} "
-                    f"already finished; report in {self.plan.report_dir / 'report.html'}")
-        parts = []
-        if self.failed:
-            first = self.failed[0]
-            parts.append(f"{len(self.failed)} job{'s' * (len(self.failed) != 1)} failed (first: {first.label}, "
-                         f"exit {first.returncode}, log {first.log})")
-        if self.blocked:
-            parts.append(f"{len(self.blocked)} transfer{'s' * (len(self.blocked) != 1)} not started")
-        if self.report_error:
-            parts.append(f"no report ({self.report_error})")
-        return f"study incomplete: {'; '.join(parts)}; run the same command again to continue"
+        failures = [(job, f"exit {job.returncode}, log {job.log}") for job in self.failed]
+        return summary_line(self.plan, self.finished, failures, self.blocked, self.report_error)
+
+
+def summary_line(plan: StudyPlan, finished: Sequence[Job], failures: Sequence[tuple[Job, str]],
+                 blocked: Sequence[Job], report_error: str | None, ran: str = "run") -> str:
+    """The last line of a study command, for any backend: complete, or what failed and how to go on.
+
+    Args:
+        failures: each failed job with why, e.g. its exit code and log.
+        ran: how the jobs ran ("run", "run through SLURM").
+    """
+    if not failures and not blocked and report_error is None:
+        skipped = sum(j.state == DONE for j in plan.ordered)
+        return (f"study complete: {len(finished)} job{'s' * (len(finished) != 1)} {ran}, {skipped} "
+                f"already finished; report in {plan.report_dir / 'report.html'}")
+    parts = []
+    if failures:
+        job, why = failures[0]
+        parts.append(f"{len(failures)} job{'s' * (len(failures) != 1)} failed (first: {job.label}, {why})")
+    if blocked:
+        parts.append(f"{len(blocked)} transfer{'s' * (len(blocked) != 1)} not started")
+    if report_error:
+        parts.append(f"no report ({report_error})")
+    return f"study incomplete: {'; '.join(parts)}; run the same command again to continue"
 
 
 class _Done:

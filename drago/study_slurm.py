@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from drago.study import (DONE, LOCK_FILE, LOG_FOLDER, PARENT_ENV, RESUME, START, Job, StudyError, StudyPlan,
-                         _duration, _lock, _outcome, _wall_time, directory_state, write_report)
+                         _duration, _lock, _outcome, _wall_time, directory_state, summary_line, write_report)
 from drago.train.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
 
 __all__ = ["SlurmOptions", "SlurmResult", "StudyJob", "Submission", "active_job_ids", "describe_resources",
@@ -1062,19 +1062,8 @@ class SlurmResult:
         return not self.failed and not self.blocked and self.report_error is None
 
     def summary_line(self) -> str:
-        if self.ok:
-            skipped = sum(j.state == DONE for j in self.plan.ordered)
-            return (f"study complete: {len(self.finished)} job{'s' * (len(self.finished) != 1)} run through SLURM, "
-                    f"{skipped} already finished; report in {self.plan.report_dir / 'report.html'}")
-        parts = []
-        if self.failed:
-            job, why = self.failed[0]
-            parts.append(f"{len(self.failed)} job{'s' * (len(self.failed) != 1)} failed (first: {job.label}, {why})")
-        if self.blocked:
-            parts.append(f"{len(self.blocked)} transfer{'s' * (len(self.blocked) != 1)} not started")
-        if self.report_error:
-            parts.append(f"no report ({self.report_error})")
-        return f"study incomplete: {'; '.join(parts)}; run the same command again to continue"
+        return summary_line(self.plan, self.finished, self.failed, self.blocked, self.report_error,
+                            ran="run through SLURM")
 
 
 def wait_study(submission: Submission, echo: Callable[[str], None] = print, poll_seconds: float = 2.0,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -247,6 +248,19 @@ def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
         f"coverage is defined for the '{GRID_DOMAIN}' grid only" if cfg.env.domain != GRID_DOMAIN else None))
 
 
+def grid_world_models(checkpoints: Iterable[RunCheckpoint], device: str, refusal: str,
+                      error: type[RunDirError] = CoverageError) -> Iterator[tuple[RunCheckpoint, Any]]:
+    """Each checkpoint with its world model as a numpy predictor, refusing one of another domain with
+    ``error("PATH comes from domain 'X'; " + refusal)`` (checkpoints are checked as they are loaded)."""
+    from drago.eval.predictor import load_world_model
+
+    for checkpoint in checkpoints:
+        predictor = load_world_model(checkpoint.path, device=device)
+        if predictor.domain != GRID_DOMAIN:
+            raise error(f"{checkpoint.path} comes from domain '{predictor.domain}'; {refusal}")
+        yield checkpoint, predictor
+
+
 def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, Any]]:
     """Coverage of the world model after each finished task of a run.
 
@@ -263,15 +277,10 @@ def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, 
         CoverageError: See :func:`run_checkpoints`.
         drago.train.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
     """
-    from drago.eval.predictor import load_world_model
-
     cfg, checkpoints = run_checkpoints(run_dir)
     rows: list[dict[str, Any]] = []
-    for checkpoint in checkpoints:
-        predictor = load_world_model(checkpoint.path, device=device)
-        if predictor.domain != GRID_DOMAIN:
-            raise CoverageError(f"{checkpoint.path} comes from domain '{predictor.domain}'; "
-                                f"coverage is defined for the '{GRID_DOMAIN}' grid only")
+    refusal = f"coverage is defined for the '{GRID_DOMAIN}' grid only"
+    for checkpoint, predictor in grid_world_models(checkpoints, device, refusal):
         result = grid_coverage(predictor)
         for group, summary in result.rooms.items():
             rows.append({"run": str(run_dir), "method": cfg.method.name, "seed": cfg.train.seed,

@@ -58,7 +58,7 @@ from drago.envs.fourrooms import (
     decode_observation,
 )
 from drago.envs.tasks import GRID_SEQUENCES, GridTask, get_grid_task
-from drago.eval.coverage import grid_transitions, write_rows_csv
+from drago.eval.coverage import grid_transitions, grid_world_models, write_rows_csv
 from drago.eval.metrics import continual_metrics
 from drago.seeding import task_seed
 from drago.train.rundir import RunCheckpoint, RunDirError
@@ -429,17 +429,12 @@ def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, ep
         ZeroShotError: a run that is not a grid run, has no finished stage, or a bad argument (one line).
         drago.train.checkpoint.CheckpointError: a corrupt or mismatched checkpoint.
     """
-    from drago.eval.predictor import load_world_model
-
     _check_budget(episodes, horizon)
     cfg, checkpoints = run_checkpoints(run_dir)
     resolved = _resolve(default_tasks(cfg.env.tasks) if tasks is None else tasks, readings)
     rows: list[dict[str, Any]] = []
-    for checkpoint in checkpoints:
-        predictor = load_world_model(checkpoint.path, device=device)
-        if predictor.domain != GRID_DOMAIN:
-            raise ZeroShotError(f"{checkpoint.path} comes from domain '{predictor.domain}'; zero-shot planning "
-                                f"needs a tabular domain with a known reward: the '{GRID_DOMAIN}' grid only")
+    refusal = f"zero-shot planning needs a tabular domain with a known reward: the '{GRID_DOMAIN}' grid only"
+    for checkpoint, predictor in grid_world_models(checkpoints, device, refusal, ZeroShotError):
         model = lattice_model(model_dynamics(predictor.world_model), device=device)
         for task in resolved:
             returns = play(model, task, episodes, seed, checkpoint.stage, horizon)

@@ -18,7 +18,7 @@ import numpy as np
 
 from drago.envs.fourrooms import SIZE, is_traversable
 from drago.envs.tasks import GRID_TASKS
-from drago.eval.coverage import GRID_DOMAIN, CoverageError, cell_scores, grid_coverage, run_checkpoints
+from drago.eval.coverage import GRID_DOMAIN, cell_scores, grid_coverage, grid_world_models, run_checkpoints
 from drago.train.rundir import RunCheckpoint
 
 __all__ = ["StageMaps", "heatmap_png", "run_cell_scores"]
@@ -48,17 +48,9 @@ def run_cell_scores(run_dir: str | Path, device: str = "cpu") -> list[tuple[RunC
         CoverageError: Not a grid run, or no task finished yet (see :func:`run_checkpoints`).
         drago.train.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
     """
-    from drago.eval.predictor import load_world_model
-
     _, checkpoints = run_checkpoints(run_dir)
-    out = []
-    for checkpoint in checkpoints:
-        predictor = load_world_model(checkpoint.path, device=device)
-        if predictor.domain != GRID_DOMAIN:
-            raise CoverageError(f"{checkpoint.path} comes from domain '{predictor.domain}'; "
-                                f"heatmaps are defined for the '{GRID_DOMAIN}' grid only")
-        out.append((checkpoint, cell_scores(grid_coverage(predictor).score)))
-    return out
+    return [(checkpoint, cell_scores(grid_coverage(predictor).score)) for checkpoint, predictor in
+            grid_world_models(checkpoints, device, f"heatmaps are defined for the '{GRID_DOMAIN}' grid only")]
 
 
 def _wall_mask() -> np.ndarray:

@@ -35,7 +35,7 @@ def measure_one(preset: str, method: str, threads: int, steps: int, seed_steps: 
     """Train a two-task sequence in this process and return the costs of its second task."""
     from drago.config import load_config
     from drago.continual.base import Budget
-    from drago.train.run import new_run
+    from drago.training.run import new_run
 
     full = load_config(preset, method=method)
     cfg = load_config(preset, [f"env.tasks=[{','.join(full.env.tasks[:2])}]",

@@ -53,9 +53,9 @@ from drago.config import load_config
 from drago.continual.base import Budget, TaskState, buffer_capacity
 from drago.continual.drago import Drago
 from drago.envs import env_spec, make_env
-from drago.train.resources import PeakMemory, keep_freed_memory
+from drago.training.resources import PeakMemory, keep_freed_memory
 from drago.agent.networks import build_world_model
-from drago.train.episodes import run_episode
+from drago.training.episodes import run_episode
 
 DEFAULT_PRESETS = ("minigrid", "minigrid-cpu", "cheetah-cpu")
 

@@ -87,7 +87,7 @@ def measure(task_name: str, dense: bool, horizon: int, seeds: int, episodes: int
 def smoke_run(where: Path) -> Path:
     """A smoke run with the minigrid-cpu world model's width, trained here (about half a minute)."""
     from drago.config import load_config
-    from drago.train.run import new_run
+    from drago.training.run import new_run
 
     cfg = load_config("smoke", ["agent.mlp_dim=128", "train.tensorboard=false", "train.threads=1"],
                       method="continual")

@@ -41,11 +41,11 @@ from drago.eval.heldout import format_table as format_retention_table
 from drago.eval.heldout import heldout_checkpoints as retention_checkpoints
 from drago.eval.predictor import WorldModelPredictor, load_world_model
 from drago.report import ReportError, build_report
-from drago.train.checkpoint import CheckpointError, NonFiniteCheckpoint
-from drago.train.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
-from drago.train.rundir import RunDirError
-from drago.train.runs import Run
-from drago.train.trainer import Trainer, TrainingDiverged
+from drago.training.checkpoint import CheckpointError, NonFiniteCheckpoint
+from drago.training.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
+from drago.training.rundir import RunDirError
+from drago.training.runs import Run
+from drago.training.trainer import Trainer, TrainingDiverged
 
 __all__ = [
     "COVERAGE_FILE", "RETENTION_FILE", "NonFiniteCheckpoint", "TrainingDiverged", "coverage_checkpoints",

@@ -41,9 +41,9 @@ from typing import Any
 from drago.config import Config, ConfigError, load_config
 from drago.continual import check_method
 from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
-from drago.train.resources import keep_freed_memory_requested
-from drago.train.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
-from drago.train.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule, plan_transfer
+from drago.training.resources import keep_freed_memory_requested
+from drago.training.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
+from drago.training.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule, plan_transfer
 
 __all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
            "default_study_dir", "describe_plan", "directory_state", "parse_seeds", "plan_study", "run_study",
@@ -609,7 +609,7 @@ def write_report(plan: StudyPlan, echo: Callable[[str], None] = print) -> tuple[
 
 def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Path], str | None]:
     from drago.report import build_report, write_transfer_tables
-    from drago.train.checkpoint import CheckpointError
+    from drago.training.checkpoint import CheckpointError
 
     run_dirs = [job.directory for job in plan.runs if is_run_dir(job.directory)]
     if not run_dirs:

@@ -49,7 +49,7 @@ from typing import Any
 
 from drago.study import (DONE, LOCK_FILE, LOG_FOLDER, PARENT_ENV, RESUME, START, Job, StudyError, StudyPlan,
                          _duration, _lock, _outcome, _wall_time, directory_state, summary_line, write_report)
-from drago.train.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
+from drago.training.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
 
 __all__ = ["SlurmOptions", "SlurmResult", "StudyJob", "Submission", "active_job_ids", "describe_resources",
            "describe_submission", "job_overrides", "make_options", "parse_time", "require_submitit", "status_lines",

@@ -8,7 +8,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import drago.api as drago
+import drago
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "runs/api-tour")
 

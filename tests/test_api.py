@@ -9,6 +9,7 @@ import textwrap
 import numpy as np
 import pytest
 
+import drago
 from drago import api
 from drago.config import ConfigError
 from drago.continual import Continual, registry
@@ -82,14 +83,15 @@ def clean_registry(monkeypatch):
 
 
 def test_a_registered_method_trains_like_a_built_in_one(clean_registry, tmp_path):
-    @api.register_method("reset-nothing")
+    # Through the top-level names, as the docs show them: drago.train is the API's function, not a subpackage.
+    @drago.register_method("reset-nothing")
     class ResetNothing(Continual):
         description = "continual TD-MPC under another name"
 
-    assert "reset-nothing" in api.available_methods() and api.methods()["reset-nothing"] is ResetNothing
-    cfg = api.load_config("smoke", ["env.tasks=[room1]", "train.steps_per_task=200"], method="reset-nothing")
-    run = api.train(cfg, out=tmp_path / "run", progress=False)
-    assert run.complete and run.config.method.name == "reset-nothing"
+    assert "reset-nothing" in drago.available_methods() and drago.methods()["reset-nothing"] is ResetNothing
+    cfg = drago.load_config("smoke", ["env.tasks=[room1]", "train.steps_per_task=200"], method="reset-nothing")
+    run = drago.train(cfg, out=tmp_path / "run", progress=False)
+    assert isinstance(run, drago.Run) and run.complete and run.config.method.name == "reset-nothing"
 
 
 @pytest.mark.parametrize("name, cls, expected", [

@@ -28,7 +28,7 @@ from drago.continual.curiosity import Curiosity
 from drago.continual.ewc import EWC, consistency_loss, ewc_penalty, fisher_diagonal, trainable_parameters
 from drago.continual.replay import Replay, ReservoirBuffer, replay_loss, replay_weight, stored_transitions
 from drago.envs import env_spec
-from drago.train.checkpoint import load_checkpoint, save_checkpoint
+from drago.training.checkpoint import load_checkpoint, save_checkpoint
 from helpers import QUIET
 
 OBS, ACT, H, MLP = 3, 3, 3, 16

@@ -271,7 +271,7 @@ def test_list_settings_mentions_every_setting(capsys):
 
 
 def test_interrupted_train_and_resume_name_the_run_to_continue(tmp_path, capsys, monkeypatch):
-    from drago.train.trainer import Trainer
+    from drago.training.trainer import Trainer
 
     def interrupted(self):
         raise KeyboardInterrupt

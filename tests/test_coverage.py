@@ -32,7 +32,7 @@ from drago.eval.coverage import (
     grid_transitions,
     room_of,
 )
-from drago.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from drago.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from helpers import read_csv
 
 TASKS = ("room1", "room2", "room3", "room4")

@@ -20,7 +20,7 @@ from drago.continual.generative import (
     vae_loss,
 )
 from drago.envs.fourrooms import observation, traversable_cells
-from drago.train.checkpoint import load_checkpoint
+from drago.training.checkpoint import load_checkpoint
 
 
 def _world_model(seed: int) -> WorldModel:

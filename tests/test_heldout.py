@@ -31,7 +31,7 @@ from drago.eval.heldout import (  # noqa: E402
     write_retention_csv,
 )
 from drago.report import build_report  # noqa: E402
-from drago.train import trainer as trainer_module  # noqa: E402
+from drago.training import trainer as trainer_module  # noqa: E402
 from drago.seeding import task_seed  # noqa: E402
 
 TASKS = ("cheetah-run", "cheetah-jump")

@@ -13,14 +13,14 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "drago"
 
 #: Lowest first. A module's layer is the longest prefix of its dotted name listed in LAYER_OF.
-LAYERS = ("core", "envs", "config", "agent", "continual", "train", "eval", "report", "study", "api", "cli")
+LAYERS = ("core", "envs", "config", "agent", "continual", "training", "eval", "report", "study", "api", "cli")
 LAYER_OF = {
     "drago.seeding": "core",
     "drago.envs": "envs",
     "drago.config": "config",
     "drago.agent": "agent",
     "drago.continual": "continual",
-    "drago.train": "train",
+    "drago.training": "training",
     "drago.eval": "eval",
     "drago.report": "report",
     "drago.study": "study",

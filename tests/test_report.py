@@ -30,7 +30,7 @@ from drago.envs.fourrooms import SIZE, is_traversable, traversable_cells
 from drago.eval.coverage import COVERAGE_FILE, cell_scores, coverage_of_run, grid_transitions, write_coverage_csv
 from drago.report.heatmap import StageMaps, heatmap_png, run_cell_scores
 from drago.report import ReportError, build_report, find_run_dirs
-from drago.train.run import resume
+from drago.training.run import resume
 
 SMOKE = ["--no-progress", "train.tensorboard=false", "train.steps_per_task=200", "train.eval_freq=100"]
 TABLES = ("runs", "returns", "coverage", "metrics")

@@ -23,8 +23,8 @@ from drago.agent.networks import WorldModel
 from drago.config import Config, load_config
 from drago.continual import METHODS
 from drago.continual.naive import Continual, Scratch
-from drago.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from drago.train.resources import keep_freed_memory
+from drago.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from drago.training.resources import keep_freed_memory
 from helpers import QUIET, read_csv
 
 TASKS = ("room1", "room2", "room3", "room4")
@@ -165,7 +165,7 @@ def test_evaluation_never_changes_what_a_run_learns(reference, tmp_path):
 
 def test_episodes_side_by_side_are_the_episodes_one_at_a_time():
     from drago.envs import make_env
-    from drago.train.episodes import run_episode, run_episodes
+    from drago.training.episodes import run_episode, run_episodes
 
     def fixed(seed):
         return np.random.default_rng(seed).integers(3, size=30)
@@ -298,7 +298,7 @@ def test_a_nan_stops_the_run_in_one_line_and_resume_continues_from_a_sound_check
 
 
 def test_a_checkpoint_with_a_nan_is_never_written(tmp_path):
-    from drago.train.checkpoint import NonFiniteCheckpoint
+    from drago.training.checkpoint import NonFiniteCheckpoint
 
     path = tmp_path / "task1_room1.pt"
     save_checkpoint(path, {"world_model": {"w": torch.ones(2)}}, kind="task", domain="minigrid")
@@ -375,7 +375,7 @@ def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
 
 FAULTS_OF_A_REPEATED_ALLOCATION = """
 import resource, sys, torch
-from drago.train.resources import keep_freed_memory
+from drago.training.resources import keep_freed_memory
 print(keep_freed_memory())
 for _ in range(12):  # the heap settles over the first few rounds
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -408,7 +408,7 @@ def test_every_spelling_of_no_keeps_the_allocator_defaults(value, monkeypatch):
 
 PEAK_AFTER_A_LARGE_FREED_TENSOR = """
 import torch
-from drago.train.resources import PeakMemory, keep_freed_memory
+from drago.training.resources import PeakMemory, keep_freed_memory
 assert keep_freed_memory()
 torch.ones(2**27).sum()  # 512 MiB, freed at once but kept by malloc
 memory = PeakMemory()

@@ -20,8 +20,8 @@ from drago.config import Config
 from drago.continual import METHODS
 from drago.continual.drago import Drago
 from drago.envs import task_optimum
-from drago.train.checkpoint import load_checkpoint
-from drago.train.transfer import PAPER_CASES
+from drago.training.checkpoint import load_checkpoint
+from drago.training.transfer import PAPER_CASES
 from helpers import QUIET, read_csv
 
 TWO_TASKS = "env.tasks=[room1,room2]"
@@ -343,8 +343,8 @@ class EpisodeLog:
     """Wraps run_episodes, which plays every learner and evaluation episode: how each one started."""
 
     def __init__(self, monkeypatch):
-        from drago.train import episodes as episodes_module
-        from drago.train import trainer as trainer_module
+        from drago.training import episodes as episodes_module
+        from drago.training import trainer as trainer_module
 
         self.records: list[dict] = []
         original = episodes_module.run_episodes
@@ -393,7 +393,7 @@ def cheetah_source(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def jump2run(cheetah_source) -> dict:
     """jump2run after stage 2, three learner episodes (DRAGO's reviewer on), every episode start logged."""
-    from drago.train.pre_rollout import PreRollout
+    from drago.training.pre_rollout import PreRollout
 
     calls = {"n": 0}
     original = PreRollout.__call__
@@ -521,7 +521,7 @@ def test_dmc_paper_cases_follow_table_1(cheetah_source, tmp_path):
 def test_pre_rollout_planning(cheetah_source, planning, monkeypatch):
     """source: the learner's own end-of-task horizon and std floor; code: the official quirk (paper §4.4, Table 1)."""
     from drago.envs import make_env
-    from drago.train.pre_rollout import PreRollout, load_learner
+    from drago.training.pre_rollout import PreRollout, load_learner
 
     path = cheetah_source / "checkpoints" / "task2_cheetah-jump.pt"
     ckpt = load_checkpoint(path, kind="task")

@@ -42,7 +42,7 @@ from drago.eval.zero_shot import (
     write_zero_shot_csv,
     zero_shot_matrix,
 )
-from drago.train.rundir import write_run_config
+from drago.training.rundir import write_run_config
 
 TRAINING = ("room1", "room2", "room3", "room4")
 TRANSFERS = ("room1to2", "room1to3", "room3to4")

@@ -74,7 +74,7 @@ def record_episode(env, length: int, choose_action: Callable[[np.ndarray, int], 
     Args:
         env: a gymnasium env created with ``render_mode="rgb_array"``.
         length: agent steps to take.
-        choose_action: ``(obs, t) -> action``, as for :func:`drago.train.trainer.run_episode`
+        choose_action: ``(obs, t) -> action``, as for :func:`drago.training.trainer.run_episode`
             (for example ``lambda obs, t: agent.act(obs, step, eval_mode=True, first_step=t == 0)``).
         path: ``.gif`` or ``.mp4`` file to write.
         fps: frames per second (None: the env's ``metadata["render_fps"]``, real time for DMC).

@@ -35,8 +35,8 @@ from drago.envs.fourrooms import (
     traversable_cells,
 )
 from drago.envs.tasks import get_grid_task
-from drago.train.rundir import RunCheckpoint, RunDirError, atomic_write_text
-from drago.train.rundir import run_checkpoints as _run_checkpoints
+from drago.training.rundir import RunCheckpoint, RunDirError, atomic_write_text
+from drago.training.rundir import run_checkpoints as _run_checkpoints
 
 __all__ = [
     "GROUPS",
@@ -275,7 +275,7 @@ def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, 
 
     Raises:
         CoverageError: See :func:`run_checkpoints`.
-        drago.train.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
+        drago.training.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
     """
     cfg, checkpoints = run_checkpoints(run_dir)
     rows: list[dict[str, Any]] = []

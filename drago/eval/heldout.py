@@ -30,8 +30,8 @@ from drago.agent.losses import LOG_EPS
 from drago.config import Config
 from drago.eval.coverage import GRID_DOMAIN, write_rows_csv
 from drago.eval.predictor import load_world_model
-from drago.train.heldout_sets import HeldoutSet, load_heldout, record_heldout
-from drago.train.rundir import HELDOUT_FOLDER, RunCheckpoint, RunDirError, heldout_path, run_checkpoints
+from drago.training.heldout_sets import HeldoutSet, load_heldout, record_heldout
+from drago.training.rundir import HELDOUT_FOLDER, RunCheckpoint, RunDirError, heldout_path, run_checkpoints
 
 __all__ = ["CSV_COLUMNS", "HELDOUT_FOLDER", "RETENTION_FILE", "HeldoutError", "HeldoutSet", "format_table",
            "heldout_checkpoints", "heldout_path", "load_heldout", "record_heldout",
@@ -80,7 +80,7 @@ def retention_matrix(run_dir: str | Path, device: str = "cpu", record_missing: b
 
     Raises:
         HeldoutError: see :func:`heldout_checkpoints`, or no held-out set at all.
-        drago.train.checkpoint.CheckpointError: a corrupt or mismatched checkpoint.
+        drago.training.checkpoint.CheckpointError: a corrupt or mismatched checkpoint.
     """
     run_dir = Path(run_dir)
     cfg, checkpoints = heldout_checkpoints(run_dir)

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from drago.agent.networks import WorldModel
-from drago.train.checkpoint import load_task_checkpoint
+from drago.training.checkpoint import load_task_checkpoint
 
 # Rows per forward pass: large enough to amortise Python overhead, small enough to bound memory.
 PREDICT_CHUNK = 8192
@@ -94,7 +94,7 @@ def load_world_model(checkpoint_path: str | Path, device: str = "cpu") -> WorldM
         predicted next observations.
 
     Raises:
-        drago.train.checkpoint.CheckpointError: Missing, corrupt or non-task checkpoint, or weights
+        drago.training.checkpoint.CheckpointError: Missing, corrupt or non-task checkpoint, or weights
             that do not fit the network its configuration describes (one-line message).
     """
     loaded = load_task_checkpoint(checkpoint_path, device)

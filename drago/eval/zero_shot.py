@@ -61,9 +61,9 @@ from drago.envs.tasks import GRID_SEQUENCES, GridTask, get_grid_task
 from drago.eval.coverage import grid_transitions, grid_world_models, write_rows_csv
 from drago.eval.metrics import continual_metrics
 from drago.seeding import task_seed
-from drago.train.rundir import RunCheckpoint, RunDirError
-from drago.train.rundir import run_checkpoints as _run_checkpoints
-from drago.train.transfer import PAPER_CASES
+from drago.training.rundir import RunCheckpoint, RunDirError
+from drago.training.rundir import run_checkpoints as _run_checkpoints
+from drago.training.transfer import PAPER_CASES
 
 __all__ = [
     "CSV_COLUMNS",
@@ -427,7 +427,7 @@ def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, ep
 
     Raises:
         ZeroShotError: a run that is not a grid run, has no finished stage, or a bad argument (one line).
-        drago.train.checkpoint.CheckpointError: a corrupt or mismatched checkpoint.
+        drago.training.checkpoint.CheckpointError: a corrupt or mismatched checkpoint.
     """
     _check_budget(episodes, horizon)
     cfg, checkpoints = run_checkpoints(run_dir)

@@ -27,7 +27,7 @@ from drago.report.tables import (
     runs_table,
 )
 from drago.report.transfers import relearning_metrics, training_table, transfer_block, transfer_gaps, transfer_tables
-from drago.train.rundir import CONFIG_FILE
+from drago.training.rundir import CONFIG_FILE
 
 
 def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[Path, Path]:
@@ -46,7 +46,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
     Raises:
         ReportError: A path without runs, or an unreadable run file (one-line message).
         drago.config.ConfigError: An invalid ``config.yaml``.
-        drago.train.checkpoint.CheckpointError: A corrupt checkpoint.
+        drago.training.checkpoint.CheckpointError: A corrupt checkpoint.
     """
     given = [read_run(path) for path in find_run_dirs(run_dirs)]
     runs = [run for run in given if not run.is_transfer]

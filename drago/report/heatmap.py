@@ -19,7 +19,7 @@ import numpy as np
 from drago.envs.fourrooms import SIZE, is_traversable
 from drago.envs.tasks import GRID_TASKS
 from drago.eval.coverage import GRID_DOMAIN, cell_scores, grid_coverage, grid_world_models, run_checkpoints
-from drago.train.rundir import RunCheckpoint
+from drago.training.rundir import RunCheckpoint
 
 __all__ = ["StageMaps", "heatmap_png", "run_cell_scores"]
 
@@ -46,7 +46,7 @@ def run_cell_scores(run_dir: str | Path, device: str = "cpu") -> list[tuple[RunC
 
     Raises:
         CoverageError: Not a grid run, or no task finished yet (see :func:`run_checkpoints`).
-        drago.train.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
+        drago.training.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
     """
     _, checkpoints = run_checkpoints(run_dir)
     return [(checkpoint, cell_scores(grid_coverage(predictor).score)) for checkpoint, predictor in

@@ -16,7 +16,7 @@ from drago.eval.coverage import (
     GRID_DOMAIN,
     room_of,
 )
-from drago.train.rundir import CONFIG_FILE, TRANSFER_FOLDER, RunDirError, read_run_config, read_summary
+from drago.training.rundir import CONFIG_FILE, TRANSFER_FOLDER, RunDirError, read_run_config, read_summary
 
 EVAL_FILE = "eval.csv"
 FRACTION_LABEL = "fraction of DP optimum"

@@ -21,7 +21,7 @@ from drago.eval.metrics import continual_metrics, cw_forward_transfer
 from drago.eval.stats import summarize
 from drago.report.content import Findings, Table
 from drago.report.runs import EVAL_FILE, ReportedRun, as_number, quantity_of, task_room
-from drago.train.rundir import SUMMARY_FILE
+from drago.training.rundir import SUMMARY_FILE
 
 DIGITS = 2
 COVERAGE_COLUMNS = (*ROOM_GROUPS, ALL)

@@ -13,8 +13,8 @@ from typing import Any
 from drago.report.content import Findings, Table
 from drago.report.runs import EVAL_FILE, Case, ReportedRun, as_number, case_name
 from drago.report.tables import format_summary, metrics_table
-from drago.train.rundir import RunDirError, atomic_write_text, is_run_dir, read_run_config, read_summary
-from drago.train.transfer import training_returns, transfer_summary
+from drago.training.rundir import RunDirError, atomic_write_text, is_run_dir, read_run_config, read_summary
+from drago.training.transfer import training_returns, transfer_summary
 
 TRANSFERS_CSV = "transfers.csv"
 TRANSFERS_MD = "transfers.md"

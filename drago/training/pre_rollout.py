@@ -13,7 +13,7 @@ import torch
 from drago.agent.agent import Agent
 from drago.agent.networks import linear_schedule
 from drago.config import Config
-from drago.train.checkpoint import CheckpointError, load_task_checkpoint
+from drago.training.checkpoint import CheckpointError, load_task_checkpoint
 from drago.seeding import seeded_torch_rng
 
 
@@ -42,7 +42,7 @@ def load_learner(path: str | Path, device: torch.device | str = "cpu") -> SavedL
     the floor's schedule at the task's last step, the same up to one iteration's updates).
 
     Raises:
-        drago.train.checkpoint.CheckpointError: missing, corrupt or foreign file, or no learner heads.
+        drago.training.checkpoint.CheckpointError: missing, corrupt or foreign file, or no learner heads.
     """
     loaded = load_task_checkpoint(path, device)
     data, cfg = loaded.data, loaded.config

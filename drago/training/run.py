@@ -12,14 +12,14 @@ import torch
 from drago.config import Config, ConfigError
 from drago.continual import build_method
 from drago.envs import env_spec
-from drago.train.checkpoint import load_checkpoint
-from drago.train.heldout_sets import HeldoutRecorder
-from drago.train.logger import RunLogger
-from drago.train.pre_rollout import PreRollout
-from drago.train.resources import keep_freed_memory
-from drago.train.rundir import CONFIG_FILE, RunDirError, config_diffs, is_run_dir, read_run_config, write_run_config
-from drago.train.trainer import Trainer
-from drago.train.transfer import describe, paper_transfer_plan, plan_transfer, transfer_summary
+from drago.training.checkpoint import load_checkpoint
+from drago.training.heldout_sets import HeldoutRecorder
+from drago.training.logger import RunLogger
+from drago.training.pre_rollout import PreRollout
+from drago.training.resources import keep_freed_memory
+from drago.training.rundir import CONFIG_FILE, RunDirError, config_diffs, is_run_dir, read_run_config, write_run_config
+from drago.training.trainer import Trainer
+from drago.training.transfer import describe, paper_transfer_plan, plan_transfer, transfer_summary
 
 
 def default_run_dir(cfg: Config) -> Path:
@@ -112,7 +112,7 @@ def new_transfer(run_dir: Path, task: str, after: int, out: Path | None = None, 
                  progress: bool = True, **options: Any) -> Trainer:
     """Create the transfer run directory and return its trainer (call ``.run()`` to train).
 
-    ``options`` are :func:`~drago.train.transfer.transfer_config`'s keyword arguments. The directory
+    ``options`` are :func:`~drago.training.transfer.transfer_config`'s keyword arguments. The directory
     defaults to ``RUN_DIR/transfer/{task}-after{K}``; an existing one is refused unless ``force``.
 
     Raises:

@@ -11,12 +11,12 @@ import numpy as np
 
 from drago.config import Config
 from drago.envs import make_env
-from drago.train.episodes import run_episode
-from drago.train.pre_rollout import load_learner
-from drago.train.rundir import atomic_write, heldout_path, task_checkpoint_path
+from drago.training.episodes import run_episode
+from drago.training.pre_rollout import load_learner
+from drago.training.rundir import atomic_write, heldout_path, task_checkpoint_path
 from drago.seeding import seeded_torch_rng, task_seed
 
-# Seed purposes of drago.train.seeding.task_seed (0-3 are the training's own streams).
+# Seed purposes of drago.training.seeding.task_seed (0-3 are the training's own streams).
 ENV_SEED_PURPOSE = 4
 TORCH_SEED_PURPOSE = 5
 
@@ -43,7 +43,7 @@ def record_heldout(checkpoint: str | Path, out: str | Path, device: Any = "cpu")
     the same file.
 
     Raises:
-        drago.train.checkpoint.CheckpointError: unusable checkpoint.
+        drago.training.checkpoint.CheckpointError: unusable checkpoint.
     """
     saved = load_learner(checkpoint, device)
     return record_transitions(saved.agent, saved.steps, saved.config, saved.task_index, out, device)

@@ -4,7 +4,7 @@ A run directory holds (see the docs page "Getting started", section "What a run 
 
     config.yaml            the resolved config the run was started with
     summary.json           per-task results, rewritten at the end of every task
-    train.csv eval.csv timing.csv   the logs (drago.train.logger)
+    train.csv eval.csv timing.csv   the logs (drago.training.logger)
     checkpoints/task<k>_<name>.pt   the state after task k (1-based stage k)
     checkpoints/resume.pt           the latest snapshot of the task in progress
     heldout/task<k>_<name>.npz      DeepMind Control: task k's held-out transitions

@@ -42,7 +42,7 @@ import numpy as np
 from drago.config import Config, ConfigError, validate
 from drago.envs import GRID_TASKS, available_tasks, task_optimum
 from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask, get_grid_task
-from drago.train.rundir import TRANSFER_FOLDER, RunDirError, read_run_config, task_checkpoint_path
+from drago.training.rundir import TRANSFER_FOLDER, RunDirError, read_run_config, task_checkpoint_path
 
 __all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "TransferCase", "default_transfer_dir", "describe",
            "few_shot_schedule", "finished_stages", "paper_cases", "paper_transfer_plan", "plan_transfer",

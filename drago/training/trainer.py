@@ -26,11 +26,11 @@ from drago.config import Config
 from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
 from drago.envs import EnvSpec, make_env, task_optimum
 from drago.seeding import rng_state, seeded_torch_rng, set_rng_state, task_seed
-from drago.train.checkpoint import load_checkpoint, save_checkpoint
-from drago.train.episodes import EpisodeStart, run_episode, run_episodes
-from drago.train.logger import RunLogger
-from drago.train.resources import PeakMemory
-from drago.train.rundir import resume_checkpoint_path, task_checkpoint_path, write_summary
+from drago.training.checkpoint import load_checkpoint, save_checkpoint
+from drago.training.episodes import EpisodeStart, run_episode, run_episodes
+from drago.training.logger import RunLogger
+from drago.training.resources import PeakMemory
+from drago.training.rundir import resume_checkpoint_path, task_checkpoint_path, write_summary
 
 class TrainingDiverged(RuntimeError):
     """A non-finite loss, gradient norm or weight; the message is one line naming where and how to go on."""
@@ -46,7 +46,7 @@ TaskEndHook = Callable[[int, "Agent | None", int], None]
 SummaryExtras = Callable[[list[dict[str, Any]]], dict[str, Any]]
 
 class Trainer:
-    """Runs the configured task sequence into ``run_dir`` (:mod:`drago.train.run` builds one).
+    """Runs the configured task sequence into ``run_dir`` (:mod:`drago.training.run` builds one).
 
     The trainer knows nothing of the features built on it; it is handed what it calls:
 

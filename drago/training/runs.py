@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from drago.train.checkpoint import load_task_checkpoint
-from drago.train.rundir import (
+from drago.training.checkpoint import load_task_checkpoint
+from drago.training.rundir import (
     RunCheckpoint,
     RunDirError,
     finished_task_checkpoints,

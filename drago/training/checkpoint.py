@@ -20,7 +20,7 @@ import torch
 from drago.agent.networks import WorldModel, build_world_model
 from drago.config import Config, ConfigError
 from drago.envs import EnvSpec, env_spec
-from drago.train.rundir import atomic_write
+from drago.training.rundir import atomic_write
 from drago.seeding import seeded_torch_rng
 
 FORMAT = "drago-checkpoint"
@@ -56,7 +56,7 @@ def _first_non_finite(value: Any, where: str = "") -> str | None:
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any], kind: str, domain: str) -> Path:
-    """Write ``payload`` durably and atomically (:func:`~drago.train.rundir.atomic_write`): a crash at
+    """Write ``payload`` durably and atomically (:func:`~drago.training.rundir.atomic_write`): a crash at
     any moment leaves either the old file or the new one."""
     if kind not in KINDS:
         raise ValueError(f"unknown checkpoint kind '{kind}'; valid kinds: {', '.join(KINDS)}")

@@ -66,6 +66,7 @@ PROBE_WAIT_S = 60.0  # how long the study command waits for its shared-folder ch
 MAX_TIMEOUT_REQUEUES = 100  # submitit's bound on requeues after time limits; progress is checked each time
 STOP_CHILD_S = 20.0  # how long a stopped drago may take to exit before it is killed
 INSTALL_HINT = "pip install -e '.[slurm]'"
+SUBMITIT_LOG_VARIABLE = "SUBMITIT_LOG_LEVEL"  # NOCONFIG: submitit leaves logging alone (see _import_submitit)
 
 # squeue's job states (man squeue, JOB STATE CODES). A job is "active" until it ends; requeued jobs are active.
 RUNNING_STATES = frozenset({"RUNNING", "COMPLETING", "CONFIGURING", "SIGNALING", "STAGE_OUT", "RESIZING"})
@@ -211,13 +212,34 @@ def job_overrides(options: SlurmOptions, overrides: Sequence[str]) -> list[str]:
     return overrides
 
 
+def _import_submitit() -> Any:
+    """Import submitit without letting it reconfigure the process's logging.
+
+    On import, submitit runs ``logging.config.dictConfig``, which closes every logging handler that exists, the
+    caller's own included (a file handler of the user's script; absl's handler, which then closes the stream it was
+    given, such as a test runner's captured stderr). ``SUBMITIT_LOG_LEVEL=NOCONFIG`` skips that. It is set only
+    for the import: jobs inherit the submitting environment, and on the nodes submitit's own log lines are wanted.
+    """
+    if sys.modules.get("submitit") is not None:
+        return sys.modules["submitit"]
+    previous = os.environ.get(SUBMITIT_LOG_VARIABLE)
+    os.environ[SUBMITIT_LOG_VARIABLE] = "NOCONFIG"
+    try:
+        import submitit
+    finally:
+        if previous is None:
+            os.environ.pop(SUBMITIT_LOG_VARIABLE, None)
+        else:
+            os.environ[SUBMITIT_LOG_VARIABLE] = previous
+    return submitit
+
+
 def require_submitit() -> Any:
     """The submitit module, or a one-line StudyError saying how to install it."""
     try:
-        import submitit
+        return _import_submitit()
     except ImportError:
         raise StudyError(f"--backend slurm needs submitit, which is not installed: {INSTALL_HINT}") from None
-    return submitit
 
 
 def _require_commands(*names: str) -> None:
@@ -653,6 +675,7 @@ def _dependency(unit: Unit, ids: Callable[[Unit | str], str], check: str | None,
 def _sbatch_flags(params: dict[str, Any], folder: Path) -> list[str]:
     """The ``#SBATCH`` options submitit writes for ``params`` (its own script text, where it can)."""
     try:
+        _import_submitit()
         from submitit.slurm.slurm import _make_sbatch_string
 
         text = _make_sbatch_string(command="true", folder=folder, **params)

@@ -3,6 +3,8 @@ smoke runs trained once per session."""
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -21,23 +23,34 @@ def _one_torch_thread():
 
 
 @pytest.fixture(scope="session")
-def smoke_runs(tmp_path_factory) -> Callable[..., Path]:
-    """``smoke_runs(method, *overrides)``: a finished run of the ``smoke`` preset, trained once per session
+def smoke_runs(tmp_path_factory, request) -> Callable[..., Path]:
+    """``smoke_runs(method, *overrides)``: a finished run of the ``smoke`` preset, trained once per suite
     for each distinct (method, overrides) and handed to each caller as a copy of its own, so a test may
-    write into it (a transfer, a coverage file) without touching another test's run."""
+    write into it (a transfer, a coverage file) without touching another test's run.
+
+    Under pytest-xdist the workers share one cache beside their own temporary folders: the first worker to
+    ask for a run trains it under a file lock, the others wait for it and copy it.
+    """
     from drago import cli
 
-    trained: dict[tuple[str, tuple[str, ...]], Path] = {}
-    cache = tmp_path_factory.mktemp("smoke-runs")
+    base = tmp_path_factory.getbasetemp()
+    shared = hasattr(request.config, "workerinput")  # an xdist worker: its folder is one of several
+    cache = (base.parent if shared else base) / "smoke-runs"
+    cache.mkdir(exist_ok=True)
 
     def get(method: str = "continual", *overrides: str) -> Path:
-        key = (method, tuple(overrides))
-        if key not in trained:
-            out = cache / f"{method}-{len(trained)}"
-            assert cli.main(["train", "smoke", "--method", method, "--out", str(out), *QUIET, *overrides]) == 0
-            trained[key] = out
+        key = hashlib.sha1("\0".join((method, *overrides)).encode()).hexdigest()[:12]
+        out = cache / f"{method}-{key}"
+        with (cache / f"{method}-{key}.lock").open("w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not out.exists():
+                partial = cache / f"{method}-{key}.partial"
+                shutil.rmtree(partial, ignore_errors=True)
+                assert cli.main(["train", "smoke", "--method", method, "--out", str(partial), *QUIET,
+                                 *overrides]) == 0
+                partial.rename(out)
         copy = tmp_path_factory.mktemp(f"{method}-run") / "run"
-        shutil.copytree(trained[key], copy)
+        shutil.copytree(out, copy)
         return copy
 
     return get

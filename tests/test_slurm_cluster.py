@@ -108,7 +108,9 @@ def test_time_limit_kills_the_job(slurm_cluster: SlurmCluster, tmp_path: Path):
     print(f"\njob {job} ended TIMEOUT after {time.monotonic() - start:.0f} s")
 
 
-def test_submitit_returns_a_function_result(slurm_env: SlurmCluster, tmp_path: Path):
+def test_submitit_returns_a_function_result(slurm_env: SlurmCluster, tmp_path: Path, monkeypatch):
+    # Imported as drago imports it: submitit's own logging set-up would close pytest's captured streams.
+    monkeypatch.setenv("SUBMITIT_LOG_LEVEL", "NOCONFIG")
     submitit = pytest.importorskip("submitit")
 
     def work(a: int, b: int) -> tuple[int, str, str]:  # nested: cloudpickle sends it by value

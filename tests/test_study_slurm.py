@@ -155,6 +155,28 @@ def test_without_submitit_the_error_says_how_to_install_it(tmp_path, capsys, mon
     assert err == "drago: error: --backend slurm needs submitit, which is not installed: pip install -e '.[slurm]'"
 
 
+def test_loading_submitit_leaves_the_callers_logging_alone():
+    # submitit's own logging set-up closes every existing handler (absl's closes its stream with it); a user's
+    # handler must survive the study's import, and the environment the jobs inherit must be the caller's.
+    pytest.importorskip("submitit")
+    code = """
+import logging, os
+closed = []
+class Mine(logging.StreamHandler):
+    def close(self):
+        closed.append(True)
+        super().close()
+logging.getLogger("mine").addHandler(Mine())
+from drago.study_slurm import require_submitit
+require_submitit()
+print(closed, os.environ.get("SUBMITIT_LOG_LEVEL"))
+"""
+    env = {k: v for k, v in os.environ.items() if k != "SUBMITIT_LOG_LEVEL"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["[]", "None"]
+
+
 def test_without_sbatch_the_error_says_where_to_run(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("PATH", str(tmp_path))  # no SLURM commands here
     assert cli.main(study_argv(tmp_path / "s")) == 2

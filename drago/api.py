@@ -20,7 +20,8 @@ import drago.study as study  # studies: plan_study, run_study, describe_plan, ..
 import drago.study_slurm as study_slurm  # the SLURM backend of drago study
 from drago.config import Config, ConfigError, available_presets, describe_settings
 from drago.config import load_config as _load_settings
-from drago.continual import ContinualMethod, TaskState, available_methods, check_method, methods, plugin_problems
+from drago.continual import ContinualMethod, TaskState, available_methods, check_method, methods
+from drago.continual import plugin_problems as _method_plugin_problems
 from drago.continual.registry import RegistryError, register_method
 from drago.envs import (
     Domain,
@@ -32,6 +33,7 @@ from drago.envs import (
     task_descriptions,
 )
 from drago.envs import plugin_problems as _domain_plugin_problems
+from drago.plugins import PluginProblem
 from drago.eval.coverage import COVERAGE_FILE, write_coverage_csv
 from drago.eval.coverage import coverage_of_run as coverage
 from drago.eval.coverage import format_table as format_coverage_table
@@ -51,10 +53,10 @@ __all__ = [
     "COVERAGE_FILE", "RETENTION_FILE", "NonFiniteCheckpoint", "TrainingDiverged", "coverage_checkpoints",
     "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
     "write_retention_csv",
-    "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "RegistryError",
-    "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor", "available_domains",
-    "available_methods", "available_presets", "build_report", "coverage", "default_run_dir", "describe_settings",
-    "domain_plugin_problems", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
+    "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
+    "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
+    "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",
+    "describe_settings", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
     "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",
     "run_paper_cases", "run_transfer", "study", "study_slurm", "task_descriptions", "train",
 ]
@@ -77,9 +79,9 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
     return check_method(_load_settings(preset, overrides, method=method, seed=seed))
 
 
-def domain_plugin_problems() -> list[str]:
-    """One line per domain plug-in that failed to load and was skipped."""
-    return [str(problem) for problem in _domain_plugin_problems()]
+def plugin_problems() -> list[PluginProblem]:
+    """Every plug-in (method or domain) that failed to load and was skipped; ``str(problem)`` is one line."""
+    return [*_method_plugin_problems(), *_domain_plugin_problems()]
 
 
 def train(cfg: Config, out: str | Path | None = None, force: bool = False, progress: bool = True) -> Run:

@@ -108,13 +108,16 @@ def _cmd_resume(args: argparse.Namespace) -> int:
         trainer.write_summary()
         return 0
     trainer.logger.print(f"resuming {args.run_dir}: {done} of {len(trainer.cfg.env.tasks)} tasks complete")
-    with _on_interrupt(f"continue with `drago resume {args.run_dir}`"):
-        trainer.run()
+    try:
+        with _on_interrupt(f"continue with `drago resume {args.run_dir}`"):
+            trainer.run()
+    finally:
+        trainer.logger.close()
     return 0
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from drago.api import (available_domains, available_presets, describe_settings, domain_plugin_problems,
+    from drago.api import (available_domains, available_presets, describe_settings,
                            get_domain, methods, plugin_problems, task_descriptions)
 
     print("presets:  " + ", ".join(available_presets()) + " (or a path to a YAML file)")
@@ -133,7 +136,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
     for domain in domains.values():
         for name, sequence in domain.sequences.items():
             print(f"  {name:<{width}}  {' -> '.join(sequence)}")
-    problems = [*plugin_problems(), *domain_plugin_problems()]
+    problems = plugin_problems()
     if problems:
         print("plug-ins skipped:")
         for problem in problems:

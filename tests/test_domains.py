@@ -287,6 +287,7 @@ def test_entry_point_plugins_are_discovered_and_failures_are_one_warning_line(fa
     assert all(p.package == "drago-fake-domains" for p in problems)
     assert warnings[0] == ("drago: warning: domain plug-in 'broken = drago_fake_broken:DOMAIN' of package "
                            "'drago-fake-domains' skipped: RuntimeError: the plug-in is broken on two lines")
+    assert {p.kind for p in problems} == {"domain"}
     assert "it loads a int, not a drago.envs.Domain" in str(by_entry["number"])
     assert "domain 'minigrid' is already registered (built-in)" in str(by_entry["clash"])
     assert plugin_problems() == problems

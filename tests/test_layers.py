@@ -16,6 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "drago"
 LAYERS = ("core", "envs", "config", "agent", "continual", "training", "eval", "report", "study", "api", "cli")
 LAYER_OF = {
     "drago.seeding": "core",
+    "drago.plugins": "core",
     "drago.envs": "envs",
     "drago.config": "config",
     "drago.agent": "agent",

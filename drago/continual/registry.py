@@ -9,13 +9,12 @@ warning line naming it and its package, and drago runs on with the rest.
 from __future__ import annotations
 
 import re
-import sys
 from collections.abc import Callable
-from importlib.metadata import EntryPoint, entry_points
 from typing import Any, TypeVar
 
 from drago.config import ConfigError
 from drago.continual.base import ContinualMethod
+from drago.plugins import PluginProblem, load_entry_points
 
 ENTRY_POINT_GROUP = "drago.methods"
 NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
@@ -24,7 +23,7 @@ M = TypeVar("M", bound=type[ContinualMethod])
 
 #: The live registry, name -> class; add to it with :func:`register_method` (tests may patch it).
 METHODS: dict[str, type[ContinualMethod]] = {}
-_problems: list[str] = []
+_problems: list[PluginProblem] = []
 _plugins_loaded = False
 
 
@@ -66,12 +65,7 @@ def _where(cls: type) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
-def _package(entry: EntryPoint) -> str:
-    dist = getattr(entry, "dist", None)
-    return dist.name if dist is not None else "unknown package"
-
-
-def load_plugins(entries: Callable[..., Any] = entry_points) -> None:
+def load_plugins(entries: Callable[..., Any] | None = None) -> None:
     """Register the methods of every installed plug-in (entry point group ``drago.methods``), once.
 
     An entry point names a ContinualMethod subclass (registered under the entry point's name) or a module
@@ -81,19 +75,16 @@ def load_plugins(entries: Callable[..., Any] = entry_points) -> None:
     if _plugins_loaded:
         return
     _plugins_loaded = True
-    for entry in entries(group=ENTRY_POINT_GROUP):
-        try:
-            loaded = entry.load()
-            if isinstance(loaded, type):
-                register_method(entry.name, loaded)
-            elif entry.name not in METHODS:
-                raise RegistryError(f"it loaded {entry.value} but registered no method named '{entry.name}'")
-        except Exception as err:  # a plug-in's failure must not take drago down with it
-            first = str(err).strip().splitlines()[0] if str(err).strip() else ""
-            problem = (f"method plug-in '{entry.name}' ({entry.value}) from package '{_package(entry)}' was "
-                       f"skipped: {type(err).__name__}{': ' + first if first else ''}")
-            _problems.append(problem)
-            print(f"drago: warning: {problem}", file=sys.stderr)
+
+    def register(entry: Any) -> None:
+        loaded = entry.load()
+        if isinstance(loaded, type):
+            register_method(entry.name, loaded)
+        elif entry.name not in METHODS:
+            raise RegistryError(f"it loaded {entry.value} but registered no method named '{entry.name}'")
+
+    _problems.extend(load_entry_points(ENTRY_POINT_GROUP, "method", register, plain_errors=(ConfigError,),
+                                       entries=entries))
 
 
 def methods() -> dict[str, type[ContinualMethod]]:
@@ -102,8 +93,8 @@ def methods() -> dict[str, type[ContinualMethod]]:
     return dict(METHODS)
 
 
-def plugin_problems() -> list[str]:
-    """One line per plug-in that failed to load (after :func:`methods` has loaded them)."""
+def plugin_problems() -> list[PluginProblem]:
+    """The method plug-ins that failed to load and were skipped (each one line as ``str(problem)``)."""
     load_plugins()
     return list(_problems)
 

@@ -15,17 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from drago.plugins import one_line  # re-exported: the domain modules say what to fix in one line
+
 __all__ = ["ActionScaler", "Domain", "DomainError", "EnvSpec", "one_line"]
 
 
 class DomainError(ValueError):
     """A bad domain, domain name, task or environment; the message is one line that says what to fix."""
-
-
-def one_line(text: object, limit: int = 300) -> str:
-    """``text`` on one line (whitespace runs collapsed), cut to ``limit`` characters."""
-    line = " ".join(str(text).split())
-    return line if len(line) <= limit else line[:limit - 3] + "..."
 
 
 @dataclass(frozen=True)

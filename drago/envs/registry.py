@@ -12,16 +12,14 @@ stay available as :func:`plugin_problems`.
 from __future__ import annotations
 
 import re
-import sys
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
-from importlib import metadata
 from types import ModuleType
 from typing import Any
 
 from drago.envs.builtin import BUILTIN_DOMAINS
-from drago.envs.domain import Domain, DomainError, one_line
+from drago.envs.domain import Domain, DomainError
+from drago.plugins import PluginProblem, load_entry_points, one_line, package_of
 
 __all__ = ["ENTRY_POINT_GROUP", "PluginProblem", "available_domains", "domain_families", "get_domain", "is_domain",
            "load_plugins", "plugin_problems", "register_domain", "source_of", "unregister_domain"]
@@ -30,24 +28,6 @@ __all__ = ["ENTRY_POINT_GROUP", "PluginProblem", "available_domains", "domain_fa
 ENTRY_POINT_GROUP = "drago.domains"
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-
-
-@dataclass(frozen=True)
-class PluginProblem:
-    """A domain plug-in that was skipped.
-
-    Attributes:
-        entry_point: ``name = value`` of the entry point.
-        package: The distribution package that declares it.
-        error: What went wrong, one line.
-    """
-
-    entry_point: str
-    package: str
-    error: str
-
-    def __str__(self) -> str:
-        return f"domain plug-in '{self.entry_point}' of package '{self.package}' skipped: {self.error}"
 
 
 class _Registry:
@@ -161,11 +141,6 @@ def unregister_domain(name: str) -> None:
 # ------------------------------------------------------------------------------------------------
 # Plug-ins
 # ------------------------------------------------------------------------------------------------
-def _package(ep: Any) -> str:
-    dist = getattr(ep, "dist", None)
-    return getattr(dist, "name", None) or "unknown package"
-
-
 def _load_entry_point(ep: Any) -> None:
     """Load one entry point and register what it gives; raises on any problem."""
     obj = ep.load()
@@ -199,29 +174,17 @@ def load_plugins(reload: bool = False) -> tuple[PluginProblem, ...]:
         if _registry.plugins_loaded:
             return tuple(_registry.problems)
         _registry.plugins_loaded = True  # before loading: a plug-in that looks domains up must not recurse
-        try:
-            entry_points = list(metadata.entry_points(group=ENTRY_POINT_GROUP))
-        except Exception as err:  # noqa: BLE001 - a broken metadata folder on sys.path
-            entry_points = []
-            _report(PluginProblem("(all)", "(metadata)", f"cannot list entry points: {type(err).__name__}: "
-                                                         f"{one_line(err, 160)}"))
-        for ep in entry_points:
-            label, package = f"{ep.name} = {ep.value}", _package(ep)
-            _registry.loading_source = f"entry point '{label}' of package '{package}'"
+
+        def register(ep: Any) -> None:
+            _registry.loading_source = f"entry point '{ep.name} = {ep.value}' of package '{package_of(ep)}'"
             try:
                 _load_entry_point(ep)
-            except Exception as err:  # noqa: BLE001 - a plug-in never stops drago
-                text = one_line(err, 200) if isinstance(err, DomainError) else \
-                    f"{type(err).__name__}: {one_line(err, 200)}"
-                _report(PluginProblem(label, package, text))
             finally:
                 _registry.loading_source = None
+
+        _registry.problems.extend(load_entry_points(ENTRY_POINT_GROUP, "domain", register,
+                                                    plain_errors=(DomainError,)))
         return tuple(_registry.problems)
-
-
-def _report(problem: PluginProblem) -> None:
-    _registry.problems.append(problem)
-    print(f"drago: warning: {problem}", file=sys.stderr, flush=True)
 
 
 def plugin_problems() -> tuple[PluginProblem, ...]:

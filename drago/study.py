@@ -307,7 +307,7 @@ def _counts(jobs: Sequence[Job]) -> str:
     return f"{n[START]} to start, {n[RESUME]} to resume, {n[DONE]} finished (skipped)"
 
 
-def _duration(seconds: float) -> str:
+def format_duration(seconds: float) -> str:
     seconds = int(round(seconds))
     if seconds < 60:
         return f"{seconds}s"
@@ -316,7 +316,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds // 3600}h {seconds % 3600 // 60:02d}m"
 
 
-def _wall_time(job: Job) -> float | None:
+def job_wall_time(job: Job) -> float | None:
     """Seconds a finished job took, from its summary."""
     try:
         summary = read_summary(job.directory)  # None before the first task: a TypeError below
@@ -332,7 +332,7 @@ def _estimate(plan: StudyPlan) -> str | None:
     total, counted, basis = 0.0, True, []
     for kind, jobs in (("run", plan.runs), ("transfer", plan.transfers)):
         left = sum(j.state != DONE for j in jobs)
-        times = [t for t in (_wall_time(j) for j in jobs if j.state == DONE) if t is not None]
+        times = [t for t in (job_wall_time(j) for j in jobs if j.state == DONE) if t is not None]
         if times:
             total += left * statistics.mean(times)
             basis.append(f"{len(times)} finished {kind}{'s' * (len(times) != 1)}")
@@ -341,7 +341,7 @@ def _estimate(plan: StudyPlan) -> str | None:
     if not basis or not total:
         return None
     rest = "" if counted else "; jobs of a kind none of which has finished yet are not counted"
-    return (f"about {_duration(total / plan.jobs)} left at --jobs {plan.jobs} (mean wall time of "
+    return (f"about {format_duration(total / plan.jobs)} left at --jobs {plan.jobs} (mean wall time of "
             f"{' and '.join(basis)}{rest})")
 
 
@@ -472,7 +472,7 @@ def _launch_in_process(job: Job, command: Callable[[list[str]], int]) -> _Done:
 
 
 @contextlib.contextmanager
-def _lock(out: Path):
+def study_lock(out: Path):
     out.mkdir(parents=True, exist_ok=True)
     path = out / LOCK_FILE
     with path.open("w") as handle:
@@ -510,7 +510,7 @@ def _stop(running: dict[Job, Any]) -> None:
                 handle.wait()
 
 
-def _outcome(job: Job) -> str:
+def job_outcome(job: Job) -> str:
     """A short result of a finished job for its console line."""
     try:
         summary = read_summary(job.directory)  # None before the first task: a TypeError below
@@ -551,7 +551,7 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
         count += 1
         echo(f"[{count}/{total}] {text}")
 
-    with _lock(plan.out):
+    with study_lock(plan.out):
         try:
             while todo or running:
                 for job in [j for j in todo if j.source is not None and j.source.status in ("failed", "blocked")]:
@@ -580,8 +580,8 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
                     if code == 0:
                         job.status = "done"
                         finished.append(job)
-                        outcome = _outcome(job)
-                        line(job, f"done    {job.label} in {_duration(job.seconds)}"
+                        outcome = job_outcome(job)
+                        line(job, f"done    {job.label} in {format_duration(job.seconds)}"
                              + (f": {outcome}" if outcome else ""))
                     else:
                         job.status = "failed"

@@ -48,7 +48,8 @@ from pathlib import Path
 from typing import Any
 
 from drago.study import (DONE, LOCK_FILE, LOG_FOLDER, PARENT_ENV, RESUME, START, Job, StudyError, StudyPlan,
-                         _duration, _lock, _outcome, _wall_time, directory_state, summary_line, write_report)
+                         directory_state, format_duration, job_outcome, job_wall_time, study_lock, summary_line,
+                         write_report)
 from drago.training.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
 
 __all__ = ["SlurmOptions", "SlurmResult", "StudyJob", "Submission", "active_job_ids", "describe_resources",
@@ -529,13 +530,13 @@ class StudyJob:
         if not progressed and elapsed >= 0.5 * self.time_limit_s:
             for member in self.members:
                 self._note(member, f"==== {stamp} SLURM job {job_id} stopped near its time limit after "
-                                   f"{_duration(elapsed)} without a new checkpoint: not requeued (it would never get "
-                                   "further). Raise --time or lower train.checkpoint_freq; the study command "
-                                   "continues it.")
+                                   f"{format_duration(elapsed)} without a new checkpoint: not requeued (it would "
+                                   "never get further). Raise --time or lower train.checkpoint_freq; the study "
+                                   "command continues it.")
             return None
         for member in self.members:
             self._note(member, f"==== {stamp} SLURM job {job_id} stopped (time limit near, or preempted) after "
-                               f"{_duration(elapsed)}: requeued, it continues from the last checkpoint")
+                               f"{format_duration(elapsed)}: requeued, it continues from the last checkpoint")
         return DelayedSubmission(self)
 
 
@@ -938,7 +939,7 @@ def submit_study(plan: StudyPlan, options: SlurmOptions, echo: Callable[[str], N
     submitit = require_submitit()
     _require_commands("sbatch", "squeue", "scancel")
     _check_writable(plan.out)
-    with _lock(plan.out):
+    with study_lock(plan.out):
         record = Record.load(plan.out)
         states, error = query_states()
         if states is None:
@@ -1147,9 +1148,9 @@ def wait_study(submission: Submission, echo: Callable[[str], None] = print, poll
                         job.status = "done"
                         finished.append(job)
                         # drago's own time for the work (SLURM's elapsed time restarts when a job is requeued)
-                        seconds = _wall_time(job) or (_elapsed_s(state.elapsed) if state is not None else None)
-                        outcome = _outcome(job)
-                        line(f"done    {label}" + (f" in {_duration(seconds)}" if seconds is not None else "")
+                        seconds = job_wall_time(job) or (_elapsed_s(state.elapsed) if state is not None else None)
+                        outcome = job_outcome(job)
+                        line(f"done    {label}" + (f" in {format_duration(seconds)}" if seconds is not None else "")
                              + (f": {outcome}" if outcome else ""))
                     elif state is not None and state.state == "CANCELLED" and state.reason == NEVER_SATISFIED:
                         job.status = "blocked"
@@ -1224,8 +1225,8 @@ def status_lines(plan: StudyPlan) -> list[str]:
         state = states.get(job_id) if job_id else None
         ref = f"job {job_id} " if job_id else ""
         if job.state == DONE:
-            seconds = _wall_time(job)
-            kind, detail = "done", f"{ref}" + (f"in {_duration(seconds)}" if seconds is not None else "")
+            seconds = job_wall_time(job)
+            kind, detail = "done", f"{ref}" + (f"in {format_duration(seconds)}" if seconds is not None else "")
         elif state is not None and state.active:
             kind = "running" if state.running else "queued"
             detail = f"{ref}{state.describe()}"

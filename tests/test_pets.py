@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -339,7 +338,6 @@ def test_ensemble_fits_a_linear_system():
     g = torch.Generator().manual_seed(0)
     model = ProbabilisticEnsemble(1, 1, members=3, hidden=32, layers=2)
     opt = make_optimizer(model, lr=3e-3)
-    start = time.perf_counter()
     for _ in range(300):
         s, a = torch.rand(128, 1) * 2 - 1, torch.rand(128, 1) * 2 - 1
         metrics = model.train_step(opt, s, a, 0.9 * s + 0.5 * a, s[:, 0], g)
@@ -349,7 +347,6 @@ def test_ensemble_fits_a_linear_system():
     target = torch.cat((-0.1 * s + 0.5 * a, s), -1)
     assert (mean - target).pow(2).mean().item() < 1e-3
     assert metrics["logvar"].item() < -3  # the variance shrinks on noiseless data
-    assert time.perf_counter() - start < 5
 
 
 class _HostRead(Exception):

@@ -346,7 +346,6 @@ def test_sigterm_stops_a_background_study_and_its_jobs_like_ctrl_c(tmp_path):
         proc.send_signal(signal.SIGINT)  # ignored, as after `drago study ... &` in a script
         time.sleep(0.5)
         assert proc.poll() is None
-        stopped = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -354,8 +353,8 @@ def test_sigterm_stops_a_background_study_and_its_jobs_like_ctrl_c(tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode == 130
-    assert time.monotonic() - stopped < 10  # the job stopped on its signal, not killed after the study's wait
     assert err.strip().splitlines()[-1].startswith("drago: interrupted; run the same `drago study` command again")
+    # The job stopped on its signal (a job killed after the study's wait would not have said so).
     assert "drago: interrupted" in (out / "logs" / "continual-seed1.log").read_text()
     assert [(j.label, j.state) for j in plan(out, "train.steps_per_task=100000", transfers=False).runs] == [
         ("continual seed1", RESUME), ("scratch seed1", START)]

@@ -327,7 +327,7 @@ def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
     proc = subprocess.Popen([str(DRAGO), "train", "smoke", "--out", str(run), *QUIET, *longer],
                             stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp_path)
     resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 300  # a bound on waiting, generous for a loaded machine
 
     def in_task2_with_checkpoint() -> bool:
         # resume.pt newer than task 1's checkpoint: a periodic snapshot of task 2 (or later), not task 1's
@@ -340,7 +340,7 @@ def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
     try:
         while not in_task2_with_checkpoint():
             assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
-            assert time.monotonic() < deadline, "no periodic checkpoint in task 2 within 60 s"
+            assert time.monotonic() < deadline, "no periodic checkpoint in task 2 within 300 s"
             time.sleep(0.02)
         proc.send_signal(signal.SIGKILL)
     finally:

@@ -80,8 +80,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     run_dir = args.out or default_run_dir(cfg)
     trainer = new_run(cfg, run_dir, force=args.force, progress=not args.no_progress)
     trainer.logger.print(f"drago train {cfg.preset} --method {cfg.method.name} --seed {cfg.train.seed} -> {run_dir}")
-    with _on_interrupt(f"continue with `drago resume {run_dir}`"):
-        trainer.run()
+    # Closing flushes TensorBoard and ends the W&B run (marked failed when an exception is on its way out).
+    try:
+        with _on_interrupt(f"continue with `drago resume {run_dir}`"):
+            trainer.run()
+    finally:
+        trainer.logger.close()
     return 0
 
 

@@ -119,6 +119,15 @@ class TrainConfig:
     device: str = "cpu"  # cpu, cuda, cuda:N
     threads: int = 0  # torch intra-op threads; 0: all cores
     tensorboard: bool = True  # also write TensorBoard events (the CSV logs are always written)
+    # W&B tracking (docs: Command line and configs, Experiment tracking). off, online or offline (written
+    # locally, `wandb sync` later): also send TensorBoard's scalars and the whole config to Weights & Biases;
+    # needs the wandb extra (pip install 'drago[wandb]'). A resumed run continues its W&B run.
+    wandb: str = "off"
+    wandb_project: str = "drago"  # the W&B project
+    wandb_entity: str | None = None  # the W&B user or team; None: your default entity
+    wandb_group: str | None = None  # a W&B group for the run (e.g. a study's name); None: no group
+    wandb_tags: tuple[str, ...] = ()  # W&B tags of the run
+    wandb_name: str | None = None  # the W&B run name; None: PRESET/METHOD/seedS
 
 
 @dataclass
@@ -433,6 +442,8 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
             raise ConfigError(f"setting '{key}' expects a number, got {value!r}")
         return float(value)
     if kind is str:
+        if isinstance(value, bool) and key in BOOLEAN_WORDS:
+            return BOOLEAN_WORDS[key][value]
         if isinstance(value, (dict, list)):
             raise ConfigError(f"setting '{key}' expects a string, got {value!r}")
         return str(value)
@@ -467,7 +478,11 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "method.rehearsal_target": ("pre_squash", "post_squash"),
     "method.intrinsic_reward": ("code", "paper"),
     "transfer.pre_rollout_planning": PRE_ROLLOUT_PLANNING,
+    "train.wandb": ("off", "online", "offline"),
 }
+#: Choice settings where YAML reads a word as a boolean (off, no, false: False; on, yes, true: True): the choice
+#: each boolean stands for.
+BOOLEAN_WORDS: dict[str, tuple[str, str]] = {"train.wandb": ("off", "online")}
 
 
 def _get(cfg: Config, key: str) -> Any:

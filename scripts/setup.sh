@@ -16,11 +16,12 @@ fi
 # constraints.txt pins torch to the CPU build for this set-up path (the package itself accepts any
 # torch >= 2.1, so GPU users can install their own build first) and dm-control / mujoco to a pair that
 # works. The dmc extra brings DeepMind Control (cheetah, walker), which the test suite covers; the docs
-# extra brings MkDocs, whose site build the test suite checks too.
+# extra brings MkDocs, whose site build the test suite checks too; the wandb extra, Weights & Biases, whose
+# offline mode the tests use.
 stamp=.venv/.drago-install-stamp
 want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dmc,test,docs,slurm]'
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dmc,test,docs,slurm,wandb]'
     echo "$want" > "$stamp"
 fi
 

@@ -1,4 +1,5 @@
-"""Run logging: CSV files (one row per iteration / evaluation), TensorBoard events, console echo.
+"""Run logging: CSV files (one row per iteration / evaluation), TensorBoard events, Weights & Biases
+(optional, :mod:`drago.training.tracking`), console echo.
 
 CSV files hold only values that are reproducible from the seed, so two runs with the same seed on
 the same CPU write identical files; wall-clock figures go to ``timing.csv`` and ``summary.json``.
@@ -10,15 +11,31 @@ import csv
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
+
+if TYPE_CHECKING:
+    from drago.training.tracking import WandbTracker
 
 
 def _format(value: Any) -> Any:
     if isinstance(value, float):
         return repr(value) if math.isfinite(value) else str(value)
     return value
+
+
+def scalars(kind: str, row: dict[str, Any]) -> dict[str, float | int]:
+    """The scalars of a log row as ``{tag: value}``: what TensorBoard and Weights & Biases both receive.
+
+    Training rows become ``train/KEY``, evaluations ``eval/TASK/KEY``; timing rows (wall clock, not
+    reproducible) and the task index stay in the CSV files only.
+    """
+    if kind == "timing":
+        return {}
+    prefix = kind if kind == "train" else f"{kind}/{row.get('task', '')}"
+    return {f"{prefix}/{key}": value for key, value in row.items()
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and key != "task_index"}
 
 
 class CSVLog:
@@ -73,8 +90,10 @@ class RunLogger:
 
     FILES = ("train", "eval", "timing")
 
-    def __init__(self, run_dir: Path, tensorboard: bool, purge_step: int | None = None):
+    def __init__(self, run_dir: Path, tensorboard: bool, purge_step: int | None = None,
+                 wandb: WandbTracker | None = None):
         self.run_dir = run_dir
+        self._wandb = wandb
         self.csv = {name: CSVLog(run_dir / f"{name}.csv") for name in self.FILES}
         self.console = (run_dir / "console.log").open("a")
         self._tb = None
@@ -93,12 +112,12 @@ class RunLogger:
 
     def log(self, kind: str, row: dict[str, Any], global_step: int) -> None:
         self.csv[kind].write(row)
-        if self._tb is not None and kind != "timing":
-            task = row.get("task", "")
-            for key, value in row.items():
-                if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("task_index",):
-                    self._tb.add_scalar(f"{kind}/{key}" if kind == "train" else f"{kind}/{task}/{key}", value,
-                                        global_step)
+        values = scalars(kind, row)
+        if self._tb is not None:
+            for tag, value in values.items():
+                self._tb.add_scalar(tag, value, global_step)
+        if self._wandb is not None and values:
+            self._wandb.log(values, global_step)
 
     def print(self, message: str) -> None:
         """Echo to the console (above any progress bar) and keep a copy in console.log."""
@@ -109,4 +128,6 @@ class RunLogger:
     def close(self) -> None:
         if self._tb is not None:
             self._tb.close()
+        if self._wandb is not None:
+            self._wandb.close()
         self.console.close()

@@ -18,6 +18,7 @@ from drago.training.logger import RunLogger
 from drago.training.pre_rollout import PreRollout
 from drago.training.resources import keep_freed_memory
 from drago.training.rundir import CONFIG_FILE, RunDirError, config_diffs, is_run_dir, read_run_config, write_run_config
+from drago.training.tracking import check_tracking, wandb_tracker
 from drago.training.trainer import Trainer
 from drago.training.transfer import describe, paper_transfer_plan, plan_transfer, transfer_summary
 
@@ -38,6 +39,7 @@ def set_threads(threads: int) -> None:
 
 def _prepare_process(cfg: Config) -> None:
     """Process-wide settings of a run, applied before it touches its directory (a bad one fails first)."""
+    check_tracking(cfg)
     set_threads(cfg.train.threads)
     keep_freed_memory()
 
@@ -56,7 +58,7 @@ def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = Tr
     run_dir.mkdir(parents=True, exist_ok=True)
     write_run_config(run_dir, cfg)
     trainer = _build(cfg, run_dir, device, progress)
-    trainer.logger = RunLogger(run_dir, cfg.train.tensorboard)
+    trainer.logger = _logger(cfg, run_dir, trainer)
     return trainer
 
 
@@ -75,8 +77,13 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
         purge = trainer.global_env_step(index=state["task_index"], step=state["step"])
     else:
         purge = trainer.global_env_step(index=trainer.completed_tasks())
-    trainer.logger = RunLogger(run_dir, cfg.train.tensorboard, purge_step=purge)
+    trainer.logger = _logger(cfg, run_dir, trainer, purge_step=purge)
     return trainer
+
+
+def _logger(cfg: Config, run_dir: Path, trainer: Trainer, purge_step: int | None = None) -> RunLogger:
+    return RunLogger(run_dir, cfg.train.tensorboard, purge_step=purge_step,
+                     wandb=wandb_tracker(cfg, run_dir, lambda line: trainer.logger.print(line)))
 
 
 def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> Trainer:

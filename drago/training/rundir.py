@@ -9,6 +9,9 @@ A run directory holds (see the docs page "Getting started", section "What a run 
     checkpoints/resume.pt           the latest snapshot of the task in progress
     heldout/task<k>_<name>.npz      DeepMind Control: task k's held-out transitions
     transfer/<task>-after<K>/       transfer runs learned from this run's stage K
+    wandb.json             train.wandb: the Weights & Biases run this run logs to (its id), so a
+                           resumed run continues it
+    wandb/                 train.wandb: W&B's own files (unless WANDB_DIR says elsewhere)
 
 Everything that reads or writes one of these names goes through this module, so the format has one
 definition and every write is atomic: a crash at any moment leaves either the old file or the new one.
@@ -34,10 +37,14 @@ CHECKPOINT_FOLDER = "checkpoints"
 RESUME_FILE = "resume.pt"
 HELDOUT_FOLDER = "heldout"
 TRANSFER_FOLDER = "transfer"
+WANDB_RUN_FILE = "wandb.json"
 
 #: Settings that never make two runs "different runs": the thread count follows the machine (a study's
-#: --jobs), and a resumed run keeps the count it was started with.
-SETTINGS_THAT_MAY_DIFFER: tuple[str, ...] = ("train.threads",)
+#: --jobs), and where a run's results are also sent (Weights & Biases) changes none of them; a resumed run
+#: keeps the values it was started with.
+SETTINGS_THAT_MAY_DIFFER: tuple[str, ...] = ("train.threads", "train.wandb", "train.wandb_project",
+                                             "train.wandb_entity", "train.wandb_group", "train.wandb_tags",
+                                             "train.wandb_name")
 
 
 class RunDirError(ValueError):
@@ -144,6 +151,22 @@ def is_complete(run_dir: str | Path) -> bool:
     except RunDirError:
         return False
     return summary is not None and summary.get("complete") is True
+
+
+# ---- Weights & Biases ------------------------------------------------------------------------------
+def read_wandb_run(run_dir: str | Path) -> dict[str, Any] | None:
+    """``wandb.json``: the W&B run (``id``, ``project``, ``entity``) a run logs to, or None before its first
+    W&B run started (or when the file is unreadable: the run then starts a new W&B run)."""
+    file = Path(run_dir) / WANDB_RUN_FILE
+    try:
+        data = json.loads(file.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("id"), str) and data["id"] else None
+
+
+def write_wandb_run(run_dir: str | Path, run: dict[str, Any]) -> Path:
+    return atomic_write_text(Path(run_dir) / WANDB_RUN_FILE, json.dumps(run, indent=2) + "\n", durable=True)
 
 
 # ---- checkpoints -----------------------------------------------------------------------------------

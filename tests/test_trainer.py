@@ -265,6 +265,36 @@ def test_resume_after_crash_replays_the_uninterrupted_run(reference, tmp_path, m
         assert_same_state(load_checkpoint(mine)["world_model"], load_checkpoint(ref)["world_model"])
 
 
+def test_a_resumed_run_keeps_the_tensorboard_points_logged_up_to_its_checkpoint(tmp_path, monkeypatch):
+    # TensorBoard forgets what a killed run logged after its checkpoint (purge_step). The rows logged at the
+    # checkpoint's own step came before it and must survive: here the evaluation at task 2's periodic
+    # checkpoint (env step 200), where the run resumes after a crash on task 2's first update.
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = tmp_path / "run"
+    argv = ["train", "smoke", "--out", str(run), "--no-progress", "env.tasks=[room1,room2]"]
+    original = Continual.gradient_step
+
+    def crash_in_task_two(self, task, u):
+        if task.index == 1:
+            raise RuntimeError("simulated crash")
+        return original(self, task, u)
+
+    with monkeypatch.context() as m:
+        m.setattr(Continual, "gradient_step", crash_in_task_two)
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            cli.main(argv)
+    assert cli.main(["resume", str(run), "--no-progress"]) == 0
+    events = EventAccumulator(str(run / "tb"))
+    events.Reload()
+    evals = read_csv(run / "eval.csv")
+    for task, offset in (("room1", 0), ("room2", 400)):  # the smoke preset: 400 env steps per task
+        logged = [(int(r["env_step"]) + offset, float(r["episode_reward"])) for r in evals if r["task"] == task]
+        seen = [(e.step, e.value) for e in events.Scalars(f"eval/{task}/episode_reward")]
+        assert [step for step, _ in seen] == [step for step, _ in logged], task
+        np.testing.assert_allclose([v for _, v in seen], [v for _, v in logged], rtol=1e-6)
+
+
 def test_a_nan_stops_the_run_in_one_line_and_resume_continues_from_a_sound_checkpoint(
         reference, tmp_path, capsys):
     run = tmp_path / "diverged"

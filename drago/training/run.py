@@ -71,13 +71,14 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
     # Read every finished task's checkpoint now, so a damaged one fails before any work starts.
     for index in range(trainer.completed_tasks()):
         load_checkpoint(trainer.task_checkpoint(index), kind="task", domain=cfg.env.domain)
-    # TensorBoard must forget the events written after the checkpoint the run continues from.
+    # TensorBoard must forget the events written after the checkpoint the run continues from. A checkpoint is
+    # written after the rows of its own step, so those stay: the purge starts one step later.
     if trainer.resume_checkpoint.exists():
         state = load_checkpoint(trainer.resume_checkpoint, kind="resume", domain=cfg.env.domain)
-        purge = trainer.global_env_step(index=state["task_index"], step=state["step"])
+        checkpointed = trainer.global_env_step(index=state["task_index"], step=state["step"])
     else:
-        purge = trainer.global_env_step(index=trainer.completed_tasks())
-    trainer.logger = _logger(cfg, run_dir, trainer, purge_step=purge)
+        checkpointed = trainer.global_env_step(index=trainer.completed_tasks())
+    trainer.logger = _logger(cfg, run_dir, trainer, purge_step=checkpointed + 1)
     return trainer
 
 

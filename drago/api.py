@@ -39,6 +39,11 @@ from drago.eval.coverage import coverage_of_run as coverage
 from drago.eval.coverage import format_table as format_coverage_table
 from drago.eval.coverage import run_checkpoints as coverage_checkpoints
 from drago.eval.heldout import RETENTION_FILE, retention_matrix, write_retention_csv
+from drago.eval.zero_shot import ZERO_SHOT_FILE, ZeroShotError, write_zero_shot_csv, zero_shot_matrix
+from drago.eval.zero_shot import ceiling as zero_shot_ceiling
+from drago.eval.zero_shot import format_table as format_zero_shot_table
+from drago.eval.zero_shot import matrix_metrics as zero_shot_metrics
+from drago.eval.zero_shot import run_checkpoints as zero_shot_checkpoints
 from drago.eval.heldout import format_table as format_retention_table
 from drago.eval.heldout import heldout_checkpoints as retention_checkpoints
 from drago.eval.predictor import WorldModelPredictor, load_world_model
@@ -52,7 +57,8 @@ from drago.training.trainer import Trainer, TrainingDiverged
 __all__ = [
     "COVERAGE_FILE", "RETENTION_FILE", "NonFiniteCheckpoint", "TrainingDiverged", "coverage_checkpoints",
     "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
-    "write_retention_csv",
+    "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
+    "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",

@@ -65,6 +65,25 @@ def _parser() -> argparse.ArgumentParser:
     heldout.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     heldout.add_argument("--out", type=Path, default=None, metavar="CSV",
                          help="also write every run's rows into this one CSV")
+    zero_shot = eval_sub.add_parser(
+        "zero-shot", help="zero-shot return matrix: plan with each stage's world model and the true reward (grid)",
+        usage="drago eval zero-shot RUN_DIR [RUN_DIR ...] [--tasks T ...] [--reward R ...] [--episodes N] "
+              "[--horizon H] [--out CSV]",
+        description="Plays every task with the world model after each stage and the task's true reward, no "
+                    "learned head and no learning (docs: Evaluation, zero-shot planning): R[stage, task] as "
+                    "return and fraction of the DP optimum, with ACC/BWT over the training rooms. Writes "
+                    "zero_shot.csv into each run directory.")
+    zero_shot.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
+    zero_shot.add_argument("--tasks", nargs="+", default=None, metavar="T",
+                           help="tasks to play (default: the run's training rooms, then the paper's transfer tasks)")
+    zero_shot.add_argument("--reward", nargs="+", choices=("task", "dense", "sparse"), default=["task"],
+                           help="reward readings (default task: training rooms dense, transfer tasks sparse)")
+    zero_shot.add_argument("--episodes", type=int, default=4, metavar="N",
+                           help="episodes per cell; episode e starts facing heading e mod 4 (default 4)")
+    zero_shot.add_argument("--horizon", type=int, default=None, metavar="H",
+                           help="planner lookahead in steps (default: the whole episode)")
+    zero_shot.add_argument("--out", type=Path, default=None, metavar="CSV",
+                           help="also write every run's rows into this one CSV")
     _add_transfer_parser(sub)
     _add_report_parser(sub)
     _add_study_parser(sub)
@@ -155,24 +174,47 @@ def _cmd_list(args: argparse.Namespace) -> int:
 def _cmd_eval_coverage(args: argparse.Namespace) -> int:
     from drago.api import COVERAGE_FILE, coverage, coverage_checkpoints, format_coverage_table, write_coverage_csv
 
-    return _evaluate_runs(args, check=coverage_checkpoints, measure=coverage, write=write_coverage_csv,
-                          filename=COVERAGE_FILE, title="exact-match accuracy of the world model after each task:",
-                          table=format_coverage_table)
+    _evaluate_runs(args, check=coverage_checkpoints, measure=coverage, write=write_coverage_csv,
+                   filename=COVERAGE_FILE, title="exact-match accuracy of the world model after each task:",
+                   table=format_coverage_table)
+    return 0
 
 
 def _cmd_eval_heldout(args: argparse.Namespace) -> int:
     from drago.api import (RETENTION_FILE, format_retention_table, retention_checkpoints, retention_matrix,
                            write_retention_csv)
 
-    return _evaluate_runs(args, check=retention_checkpoints,
-                          measure=lambda run_dir: retention_matrix(run_dir, record_missing=True),
-                          write=write_retention_csv, filename=RETENTION_FILE,
-                          title="prediction score -log(MSE) of the world model after each stage (rows) "
-                                "on each task's held-out set:", table=format_retention_table)
+    _evaluate_runs(args, check=retention_checkpoints,
+                   measure=lambda run_dir: retention_matrix(run_dir, record_missing=True),
+                   write=write_retention_csv, filename=RETENTION_FILE,
+                   title="prediction score -log(MSE) of the world model after each stage (rows) "
+                         "on each task's held-out set:", table=format_retention_table)
+    return 0
 
 
-def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: str, title: str, table) -> int:
-    """Measure every run's world models into a CSV per run (and optionally one for all), with a text table."""
+def _cmd_eval_zero_shot(args: argparse.Namespace) -> int:
+    from drago.api import (ZERO_SHOT_FILE, format_zero_shot_table, zero_shot_checkpoints, zero_shot_matrix,
+                           zero_shot_metrics, write_zero_shot_csv)
+
+    horizon = {} if args.horizon is None else {"horizon": args.horizon}
+    rows = _evaluate_runs(args, check=zero_shot_checkpoints,
+                          measure=lambda run_dir: zero_shot_matrix(run_dir, tasks=args.tasks, episodes=args.episodes,
+                                                                   readings=args.reward, **horizon),
+                          write=write_zero_shot_csv, filename=ZERO_SHOT_FILE,
+                          title="zero-shot return as a fraction of the DP optimum, planning with the world model "
+                                "after each stage and the true reward (* a paper transfer case):",
+                          table=format_zero_shot_table)
+    metrics = zero_shot_metrics(rows)
+    if metrics:
+        print("continual-learning metrics of R[stage, training room] (fraction of the DP optimum):")
+        for m in metrics:
+            print(f"  {m['run']}  {m['reward']}  stages {m['stages']}  ACC {m['acc']:.3f}  BWT {m['bwt']:+.3f}")
+    return 0
+
+
+def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: str, title: str, table) -> list[dict]:
+    """Measure every run's world models into a CSV per run (and optionally one for all), with a text table;
+    returns every run's rows."""
     # Check every run before evaluating any, so a typo in the last argument fails at once.
     for run_dir in args.run_dirs:
         check(run_dir)
@@ -188,11 +230,12 @@ def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: st
         print(f"wrote {run_dir / filename}")
     if args.out is not None:
         print(f"wrote {write(rows, args.out)}")
-    return 0
+    return rows
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    return {"coverage": _cmd_eval_coverage, "heldout": _cmd_eval_heldout}[args.eval_command](args)
+    return {"coverage": _cmd_eval_coverage, "heldout": _cmd_eval_heldout,
+            "zero-shot": _cmd_eval_zero_shot}[args.eval_command](args)
 
 
 COMMANDS = {"train": _cmd_train, "resume": _cmd_resume, "list": _cmd_list, "eval": _cmd_eval}

@@ -27,13 +27,14 @@ from PIL import Image
 
 from drago import cli
 from drago.envs.fourrooms import SIZE, is_traversable, traversable_cells
+from drago.eval.zero_shot import zero_shot_matrix
 from drago.eval.coverage import COVERAGE_FILE, cell_scores, coverage_of_run, grid_transitions, write_coverage_csv
 from drago.report.heatmap import StageMaps, heatmap_png, run_cell_scores
 from drago.report import ReportError, build_report, find_run_dirs
 from drago.training.run import resume
 
 SMOKE = ["--no-progress", "train.tensorboard=false", "train.steps_per_task=200", "train.eval_freq=100"]
-TABLES = ("runs", "returns", "coverage", "metrics")
+TABLES = ("runs", "returns", "coverage", "metrics", "zero-shot", "zero-shot-metrics")
 TRANSFER_TABLES = ("transfer-episodes", "transfer-env-steps", "transfer-training")
 CASE = "room1to2-after2"
 
@@ -255,6 +256,14 @@ def test_report_on_partial_results(runs, report):
     assert metrics[("continual", "1")]["BWT"] == "–"
     expected_bwt = truth[(2, "room1")] - truth[(1, "room1")]
     assert metrics[("continual", "2")]["BWT"] == f"{expected_bwt:.2f}"
+
+    # Zero-shot planning with each stage's model: the evaluation's own numbers, paper cases starred.
+    zero_shot = rows_by(page.tables["table-zero-shot"], "method", "after stage")
+    assert {k: v["seeds"] for k, v in zero_shot.items()} == {k: v["seeds"] for k, v in coverage.items()}
+    planned = {(r["stage"], r["task"]): r["fraction"] for r in zero_shot_matrix(runs["c1"])}
+    assert zero_shot[("continual", "2: room2")]["room1to2"] == f"{planned[(2, 'room1to2')]:.2f} *"
+    zero_metrics = rows_by(page.tables["table-zero-shot-metrics"], "method", "stages T")
+    assert zero_metrics[("continual", "2")]["BWT"] == f"{planned[(2, 'room1')] - planned[(1, 'room1')]:.2f}"
 
     md = md_path.read_text()
     missing = md.split("## Missing", 1)[1]

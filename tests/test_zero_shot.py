@@ -234,3 +234,28 @@ def test_bad_runs_and_arguments_are_one_line_errors(smoke_run, tmp_path):
     with pytest.raises(ZeroShotError, match="episodes"):
         ceiling(episodes=0)
     assert observation((1, 1), 0).dtype == np.float32
+
+
+def test_drago_eval_zero_shot_writes_each_runs_matrix_and_prints_its_metrics(smoke_run, tmp_path, capsys):
+    from drago import cli
+
+    assert cli.main(["eval", "zero-shot", str(smoke_run), "--episodes", "1", "--out", str(tmp_path / "all.csv")]) == 0
+    out = capsys.readouterr().out
+    written = read_csv(smoke_run / "zero_shot.csv")
+    assert [(r["stage"], r["task"]) for r in written] == [(str(s), t) for s in range(1, 5)
+                                                         for t in (*TRAINING, *TRANSFERS)]
+    assert read_csv(tmp_path / "all.csv") == written
+    again = zero_shot_matrix(smoke_run, episodes=1)
+    assert [float(r["fraction"]) for r in written] == pytest.approx([r["fraction"] for r in again])
+    (metrics,) = matrix_metrics(again)
+    assert f"ACC {metrics['acc']:.3f}" in out and "room1to2" in out and f"wrote {smoke_run / 'zero_shot.csv'}" in out
+
+
+def test_drago_eval_zero_shot_refuses_a_run_of_another_domain_in_one_line(tmp_path, capsys):
+    from drago import cli
+
+    other = tmp_path / "cheetah-run"
+    write_run_config(other, load_config("cheetah-cpu"))
+    assert cli.main(["eval", "zero-shot", str(other)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("drago: error: ") and "needs a tabular domain" in err and len(err.splitlines()) == 1

@@ -26,6 +26,7 @@ from drago.report.tables import (
     returns_table,
     runs_table,
 )
+from drago.report.zero_shot import zero_shot_matrix_of, zero_shot_rows, zero_shot_table
 from drago.report.transfers import relearning_metrics, training_table, transfer_block, transfer_gaps, transfer_tables
 from drago.training.rundir import CONFIG_FILE
 
@@ -85,6 +86,13 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         sections += [coverage_table(groups, coverage),
                      metrics_table(groups, matrices, "metrics", "Continual-learning metrics (from coverage)",
                                     "coverage accuracy in the room of task j")]
+        zero_shot = {run.path: zero_shot_rows(run, findings) for run in runs}
+        table = zero_shot_table(groups, zero_shot)
+        if table is not None:
+            sections += [table, metrics_table(
+                groups, {run.path: zero_shot_matrix_of(run, zero_shot[run.path]) for run in runs},
+                "zero-shot-metrics", "Continual-learning metrics (from zero-shot planning)",
+                "the zero-shot return on task j as a fraction of its DP optimum")]
     retention = {run.path: retention_rows(run, findings) for run in runs}  # DeepMind Control runs only
     if any(retention.values()):
         sections += retention_tables(groups, retention)

@@ -1,0 +1,95 @@
+"""The report's zero-shot section (grid runs): each stage's world model planned with the true reward.
+
+The rows come from a run's ``zero_shot.csv`` (``drago eval zero-shot``) when it matches the run's checkpoints
+and the evaluation's defaults, else they are computed here (about 3 s per run) and nothing is written into
+the run. See docs: Evaluation, zero-shot planning.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any
+
+from drago.eval.coverage import GRID_DOMAIN
+from drago.eval.zero_shot import (
+    DEFAULT_EPISODES,
+    GRID_TASKS_TRAINING,
+    ZERO_SHOT_FILE,
+    ZeroShotError,
+    default_tasks,
+    is_paper_case,
+    run_checkpoints,
+    zero_shot_matrix,
+)
+from drago.report.content import Findings, Table
+from drago.report.runs import ReportedRun, as_number
+from drago.report.tables import format_summary
+
+
+def zero_shot_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
+    """The run's zero-shot rows at the evaluation's defaults (every task at its own reward reading)."""
+    if run.cfg.env.domain != GRID_DOMAIN:
+        return []
+    try:
+        _, checkpoints = run_checkpoints(run.path)
+    except ZeroShotError:
+        return []  # no finished stage: reported with the incomplete runs
+    wanted = {(c.stage, task) for c in checkpoints for task in default_tasks(run.cfg.env.tasks)}
+    file = run.path / ZERO_SHOT_FILE
+    why = "it has no zero_shot.csv"
+    if file.is_file():
+        try:
+            with file.open(newline="") as handle:
+                rows = [dict(r, stage=int(r["stage"]), fraction=as_number(r["fraction"]),
+                             episodes=int(r["episodes"])) for r in csv.DictReader(handle)]
+            newest = max(c.path.stat().st_mtime for c in checkpoints)
+            own = [r for r in rows if r["reward"] == ("dense" if r["task"] in GRID_TASKS_TRAINING else "sparse")]
+            if ({(r["stage"], r["task"]) for r in own} >= wanted and file.stat().st_mtime >= newest
+                    and all(r["episodes"] == DEFAULT_EPISODES for r in own)):
+                return [r for r in own if (r["stage"], r["task"]) in wanted]
+            why = "its zero_shot.csv is older than its checkpoints or was made with other tasks or episodes"
+        except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+            why = "its zero_shot.csv is unreadable"
+    findings.notes.append(f"{run.path}: zero-shot returns computed from the checkpoints ({why}); nothing was "
+                          "written")
+    return zero_shot_matrix(run.path)
+
+
+def zero_shot_table(groups: dict[str, list[ReportedRun]], rows: dict[Path, list[dict[str, Any]]]) -> Table | None:
+    """Mean ± std [95% CI] over seeds of each (stage, task) cell's fraction of the DP optimum."""
+    tasks = list(dict.fromkeys(r["task"] for run_rows in rows.values() for r in run_rows))
+    if not tasks:
+        return None
+    out = []
+    for label, runs in groups.items():
+        cells = [{(r["stage"], r["task"]): (r["fraction"], is_paper_case(r)) for r in rows.get(run.path, [])}
+                 for run in runs]
+        cells = [c for c in cells if c]
+        for stage in sorted({stage for c in cells for stage, _ in c}):
+            reached = [c for c in cells if any(s == stage for s, _ in c)]
+            after = next(run.planned[stage - 1] for run in runs if len(run.planned) >= stage)
+            row = [label, f"{stage}: {after}", str(len(reached))]
+            for task in tasks:
+                values = [c[(stage, task)][0] for c in reached if (stage, task) in c]
+                case = any(c[(stage, task)][1] for c in reached if (stage, task) in c)
+                row.append((format_summary(values)[0] + (" *" if case else "")) if values else "–")
+            out.append(tuple(row))
+    return Table("zero-shot", "Zero-shot planning with the retained world model",
+                 "The return of planning with the world model after each stage and the task's true reward, no "
+                 "learned head and no learning, as a fraction of the task's DP optimum (training rooms dense, "
+                 "transfer tasks sparse; an exhaustive lookahead to the end of the episode, which reaches the "
+                 "optimum of every task with the true dynamics). * marks the paper's four transfer cases. Mean "
+                 "± std [95% CI] over seeds.", ("method", "after stage", "seeds", *tasks), out)
+
+
+def zero_shot_matrix_of(run: ReportedRun, rows: list[dict[str, Any]]) -> list[list[float]]:
+    """R[i][j] = zero-shot fraction on the run's task j after stage i + 1, over the stages the run finished
+    (the rows of a run's training rooms, in the run's order)."""
+    fraction = {(r["stage"], r["task"]): float(r["fraction"]) for r in rows}
+    if not run.planned:
+        return []
+    stages = 0
+    while all((stages + 1, task) in fraction for task in run.planned):
+        stages += 1
+    return [[fraction[(i + 1, task)] for task in run.planned] for i in range(stages)]

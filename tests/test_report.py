@@ -27,7 +27,7 @@ from PIL import Image
 
 from drago import cli
 from drago.envs.fourrooms import SIZE, is_traversable, traversable_cells
-from drago.eval.zero_shot import zero_shot_matrix
+from drago.eval.zero_shot import ZERO_SHOT_FILE, write_zero_shot_csv, zero_shot_matrix
 from drago.eval.coverage import COVERAGE_FILE, cell_scores, coverage_of_run, grid_transitions, write_coverage_csv
 from drago.report.heatmap import StageMaps, heatmap_png, run_cell_scores
 from drago.report import ReportError, build_report, find_run_dirs
@@ -551,3 +551,14 @@ def test_forward_transfer_against_scratch_by_hand(runs, tmp_path):
     _, md_path = build_report([runs["c1"]], tmp_path / "alone")
     assert "Forward transfer (Continual World)" not in md_path.read_text()
     assert "needs `scratch` runs as the single-task reference" in md_path.read_text()
+
+
+def test_report_reuses_a_fresh_zero_shot_csv_made_with_the_defaults(runs, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(runs["c1"], run)
+    write_zero_shot_csv(zero_shot_matrix(run), run / ZERO_SHOT_FILE)
+    _, md_path = build_report([run], tmp_path / "fresh")
+    assert "zero-shot returns computed from the checkpoints" not in md_path.read_text()
+    write_zero_shot_csv(zero_shot_matrix(run, episodes=1), run / ZERO_SHOT_FILE)  # not the report's numbers
+    _, md_path = build_report([run], tmp_path / "other")
+    assert "made with other tasks, episodes or horizon" in md_path.read_text()

@@ -110,7 +110,7 @@ DEFAULT_EPISODES = 4
 #: Which reward a task is read with: its catalogue's own (training rooms dense, transfers sparse), or either.
 READINGS = ("task", "dense", "sparse")
 CSV_COLUMNS: tuple[str, ...] = ("run", "method", "seed", "stage", "stage_task", "task", "reward", "return",
-                                "return_std", "optimum", "fraction")
+                                "return_std", "optimum", "fraction", "episodes", "horizon")
 #: A suggested file name for a run's matrix (nothing here writes it into a run).
 ZERO_SHOT_FILE = "zero_shot.csv"
 #: The grid's training rooms, in the order of its sequence.
@@ -372,12 +372,13 @@ def _optimum(name: str, dense: bool) -> float:
     return float(value)
 
 
-def _row(task: GridTask, returns: np.ndarray, **head: Any) -> dict[str, Any]:
+def _row(task: GridTask, returns: np.ndarray, horizon: int, **head: Any) -> dict[str, Any]:
     optimum = _optimum(task.name, task.dense)
     mean = float(np.mean(returns))
     return {**head, "task": task.name, "reward": "dense" if task.dense else "sparse", "return": mean,
             # Population std over the episodes, as eval.csv's episode_reward_std.
-            "return_std": float(np.std(returns)), "optimum": optimum, "fraction": mean / optimum}
+            "return_std": float(np.std(returns)), "optimum": optimum, "fraction": mean / optimum,
+            "episodes": len(returns), "horizon": int(horizon)}
 
 
 def _check_budget(episodes: int, horizon: int) -> None:
@@ -438,7 +439,7 @@ def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, ep
         model = lattice_model(model_dynamics(predictor.world_model), device=device)
         for task in resolved:
             returns = play(model, task, episodes, seed, checkpoint.stage, horizon)
-            rows.append(_row(task, returns, run=str(run_dir), method=cfg.method.name, seed=cfg.train.seed,
+            rows.append(_row(task, returns, horizon, run=str(run_dir), method=cfg.method.name, seed=cfg.train.seed,
                              stage=checkpoint.stage, stage_task=checkpoint.task))
     return rows
 
@@ -454,7 +455,7 @@ def ceiling(tasks: Sequence[str] | None = None, episodes: int = DEFAULT_EPISODES
     _check_budget(episodes, horizon)
     resolved = _resolve(default_tasks(GRID_TASKS_TRAINING) if tasks is None else tasks, readings)
     model = lattice_model(true_dynamics)
-    return [_row(task, play(model, task, episodes, seed, _CEILING_STAGE, horizon), run="ceiling",
+    return [_row(task, play(model, task, episodes, seed, _CEILING_STAGE, horizon), horizon, run="ceiling",
                  method="true-dynamics", seed=int(seed), stage=_CEILING_STAGE, stage_task="")
             for task in resolved]
 

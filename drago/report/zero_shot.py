@@ -14,6 +14,7 @@ from typing import Any
 from drago.eval.coverage import GRID_DOMAIN
 from drago.eval.zero_shot import (
     DEFAULT_EPISODES,
+    DEFAULT_HORIZON,
     GRID_TASKS_TRAINING,
     ZERO_SHOT_FILE,
     ZeroShotError,
@@ -41,14 +42,14 @@ def zero_shot_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]
     if file.is_file():
         try:
             with file.open(newline="") as handle:
-                rows = [dict(r, stage=int(r["stage"]), fraction=as_number(r["fraction"]),
-                             episodes=int(r["episodes"])) for r in csv.DictReader(handle)]
+                rows = [dict(r, stage=int(r["stage"]), fraction=as_number(r["fraction"]), episodes=int(r["episodes"]),
+                             horizon=int(r["horizon"])) for r in csv.DictReader(handle)]
             newest = max(c.path.stat().st_mtime for c in checkpoints)
             own = [r for r in rows if r["reward"] == ("dense" if r["task"] in GRID_TASKS_TRAINING else "sparse")]
             if ({(r["stage"], r["task"]) for r in own} >= wanted and file.stat().st_mtime >= newest
-                    and all(r["episodes"] == DEFAULT_EPISODES for r in own)):
+                    and all((r["episodes"], r["horizon"]) == (DEFAULT_EPISODES, DEFAULT_HORIZON) for r in own)):
                 return [r for r in own if (r["stage"], r["task"]) in wanted]
-            why = "its zero_shot.csv is older than its checkpoints or was made with other tasks or episodes"
+            why = "its zero_shot.csv is older than its checkpoints or was made with other tasks, episodes or horizon"
         except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
             why = "its zero_shot.csv is unreadable"
     findings.notes.append(f"{run.path}: zero-shot returns computed from the checkpoints ({why}); nothing was "

@@ -265,7 +265,8 @@ def _add_transfer_parser(sub) -> None:
     transfer.add_argument("--eval-every", type=int, default=1, metavar="N",
                           help="evaluate after every N learner episodes (default 1)")
     transfer.add_argument("--reward", choices=("dense", "sparse"), default=None,
-                          help="reward type (default: the task's own; test tasks sparse, training tasks dense)")
+                          help="reward type (default: the run's transfer.reward if set, else the task's own; "
+                               "test tasks sparse, training tasks dense)")
     transfer.add_argument("--learner-only", action="store_true",
                           help="turn the method's extras off (DRAGO: no reviewer, rehearsal or VAE updates)")
     transfer.add_argument("--out", type=Path, default=None,

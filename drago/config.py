@@ -47,8 +47,12 @@ class EnvConfig:
 
 @dataclass
 class AgentConfig:
-    """The TD-MPC agent as modified in DRAGO (paper §2; docs: Design, the agent)."""
+    """The TD-MPC agent as modified in DRAGO (paper §2; docs: Design, the agent), or PETS (docs: Methods, PETS)."""
 
+    # tdmpc: TD-MPC, the paper's agent; pets: PETS (Chua et al. 2018), the agent of the paper's Appendix E. The
+    # TD-MPC settings below do not apply to PETS except lr, batch_size, momentum, seed_steps and random_action_probs;
+    # PETS reads the pets_* settings.
+    kind: str = "tdmpc"
     mlp_dim: int = 512  # hidden width of every network (world model, heads, critics)
     use_crelu: bool = True  # CReLU dynamics as at the code's HEAD; the paper-era run used ELU (false)
     horizon: int = 10  # training and maximum planning horizon H
@@ -94,6 +98,19 @@ class AgentConfig:
     # The heads' tanh (critics, policy mean) as 2*sigmoid(2x) - 1: within 3e-7 of torch.tanh, faster on
     # CPUs where torch.tanh is not vectorised (docs: Speed and precision); off keeps runs bit-identical.
     fast_tanh: bool = False
+    # -- PETS (agent.kind=pets; docs: Methods, PETS): a probabilistic ensemble and CEM over action sequences --
+    pets_members: int = 5  # ensemble size E
+    pets_hidden: int = 200  # width of every hidden layer of the ensemble (and of the learned reward)
+    pets_layers: int = 4  # hidden layers of each ensemble member
+    pets_particles: int = 20  # particles per action sequence; a multiple of pets_members spreads them evenly
+    pets_propagation: str = "tsinf"  # tsinf: a particle keeps its member for the whole horizon; ts1: redrawn each step
+    pets_horizon: int = 25  # planning horizon in agent steps
+    pets_iterations: int = 5  # CEM iterations per planned action
+    pets_population: int = 400  # action sequences per CEM iteration
+    pets_elites: int = 40  # best sequences that refit the CEM distribution
+    # learned: each agent learns r(s, a, s') with a head of its own; known: the learner plans on the task's
+    # true reward (the grid only; DRAGO's reviewer still learns its intrinsic reward)
+    pets_reward: str = "learned"
 
 
 @dataclass
@@ -188,6 +205,9 @@ class TransferConfig:
     # code: the official code's quirk, the test task's horizon schedule (1 early on) and a std floor of 0.5.
     pre_rollout_planning: str = "source"
     case: str | None = None  # the catalogue's test task (e.g. jump2run) this transfer runs, for summaries
+    # The reward of the transfers made from this run when `drago transfer` is not told (--reward): dense or
+    # sparse; unset, the catalogue's (test tasks sparse). The PETS presets ask for dense (paper Appendix E).
+    reward: str | None = None
 
 
 @dataclass
@@ -221,6 +241,7 @@ SECTIONS = ("env", "agent", "train", "method", "transfer")
 ELITE_SELECTIONS = ("sample", "argmax")
 PRECISIONS = ("float32", "bfloat16")
 PRE_ROLLOUT_PLANNING = ("source", "code")
+AGENT_KINDS = ("tdmpc", "pets")
 
 
 def available_presets() -> list[str]:
@@ -455,7 +476,9 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
 POSITIVE = (
     "env.episode_length", "env.action_repeat", "agent.mlp_dim", "agent.horizon", "agent.batch_size",
     "agent.iterations", "agent.num_samples", "agent.num_elites", "agent.update_freq", "agent.horizon_schedule_steps",
-    "agent.std_schedule_steps", "agent.lr", "agent.lr_schedule_steps", "train.steps_per_task", "train.eval_freq",
+    "agent.std_schedule_steps", "agent.lr", "agent.lr_schedule_steps", "agent.pets_members", "agent.pets_hidden",
+    "agent.pets_layers", "agent.pets_particles", "agent.pets_horizon", "agent.pets_iterations", "agent.pets_population",
+    "agent.pets_elites", "train.steps_per_task", "train.eval_freq",
     "train.eval_episodes", "train.checkpoint_freq", "method.vae_hidden_dim", "method.vae_latent_dim",
     "method.rehearsal_freq", "method.rehearsal_batch", "method.ewc_fisher_batches", "method.replay_capacity",
     "transfer.few_shot_episodes",
@@ -471,7 +494,10 @@ NON_NEGATIVE_OR_UNSET = ("train.updates_per_episode",)
 UNIT_INTERVAL = ("agent.discount", "agent.rho", "agent.tau", "agent.momentum", "agent.mixture_coef",
                  "method.threshold_momentum")
 CHOICES: dict[str, tuple[str, ...]] = {
+    "agent.kind": AGENT_KINDS,
     "agent.elite_selection": ELITE_SELECTIONS,
+    "agent.pets_propagation": ("tsinf", "ts1"),
+    "agent.pets_reward": ("learned", "known"),
     "agent.precision": PRECISIONS,
     "method.vae_data": ("combined", "learner"),
     "method.rehearsal_mode": ("separate", "joint"),
@@ -518,6 +544,8 @@ def _check_domain_and_tasks(cfg: Config) -> None:
         raise ConfigError(f"setting 'env.action_repeat' must be 1 for the grid, got {env.action_repeat}")
     if not domain.dense_reward and env.dense_reward is not None:
         raise ConfigError(f"setting 'env.dense_reward' applies to the grid only; leave it unset for {env.domain}")
+    if not domain.dense_reward and cfg.transfer.reward is not None:
+        raise ConfigError(f"setting 'transfer.reward' applies to the grid only; leave it unset for {env.domain}")
     for module in domain.requires:
         if importlib.util.find_spec(module) is None:
             raise ConfigError(f"domain {env.domain} needs {module}, which is not installed: "
@@ -542,6 +570,17 @@ def _check_relations(cfg: Config) -> None:
     if train.reviewer_steps_per_task is not None and train.learner_steps_per_task is None:
         raise ConfigError("train.reviewer_steps_per_task needs train.learner_steps_per_task (separate budgets); "
                           "without it both share train.steps_per_task")
+    if agent.pets_elites > agent.pets_population:
+        raise ConfigError(f"agent.pets_elites ({agent.pets_elites}) must not exceed agent.pets_population "
+                          f"({agent.pets_population})")
+    if agent.kind == "pets":
+        if agent.pets_reward == "known" and cfg.env.domain != "minigrid":
+            raise ConfigError(f"agent.pets_reward=known needs a reward known as a function of observations, the "
+                              f"grid's (env.domain=minigrid); {cfg.env.domain} has none: use agent.pets_reward=learned")
+        for key, value, default in (("precision", agent.precision, "float32"), ("compile", agent.compile, False)):
+            if value != default:
+                raise ConfigError(f"setting 'agent.{key}' applies to TD-MPC; agent.kind=pets runs in float32, "
+                                  f"uncompiled: leave agent.{key} at {str(default).lower()}")
     if agent.num_elites > agent.num_samples:
         raise ConfigError(f"agent.num_elites ({agent.num_elites}) must not exceed agent.num_samples "
                           f"({agent.num_samples})")
@@ -554,6 +593,9 @@ def _check_relations(cfg: Config) -> None:
     if not 0.0 <= cfg.method.replay_fraction < 1.0:
         # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
         raise ConfigError(f"setting 'method.replay_fraction' must lie in [0, 1), got {cfg.method.replay_fraction}")
+    if cfg.transfer.reward not in (None, "dense", "sparse"):
+        raise ConfigError(f"unknown transfer.reward '{cfg.transfer.reward}'; valid choices: dense, sparse, "
+                          "or leave it unset for each task's own")
     device = train.device
     if not (device == "cpu" or device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
         raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")

@@ -11,14 +11,17 @@ The pieces, each usable on its own:
 * :func:`plan` / :func:`cem`: model-predictive control with the cross-entropy method over action
   sequences (Chua et al. 2018 §5), categorical over one-hot actions for the grid, Gaussian for
   continuous actions, following the conventions of :mod:`drago.agent.planner`.
-* :class:`PetsAgent`: the small surface the trainer calls on TD-MPC's ``Agent`` (``act``,
-  ``random_action``, ``update``, ``state_dict``), with the ensemble as ``world_model``.
+* :class:`PetsWorldModel` and :class:`RewardHead`: the ensemble behind the world-model surface that the
+  continual methods and evaluations use on TD-MPC's ``WorldModel``, and an agent's own learned reward.
+* :class:`PetsAgent`: the small surface the trainer and the methods call on TD-MPC's ``Agent`` (``act``,
+  ``random_action``, ``update``, ``state_dict``, ``heads``), with the ensemble as ``world_model``.
 
 Everything runs on the device of the ensemble's parameters (CPU by default).
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 from collections.abc import Callable
@@ -31,6 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from drago.agent.agent import random_action
+from drago.agent.losses import LOG_EPS
 
 __all__ = [
     "PROPAGATION_MODES",
@@ -39,12 +43,15 @@ __all__ = [
     "PetsAgent",
     "PetsConfig",
     "PetsPlanSettings",
+    "PetsWorldModel",
     "ProbabilisticEnsemble",
     "RewardBonus",
     "RewardFn",
+    "RewardHead",
     "Rollout",
     "bootstrap_indices",
     "cem",
+    "ensemble_mean_next",
     "gaussian_nll",
     "logvar_bound_penalty",
     "make_optimizer",
@@ -120,6 +127,29 @@ def bootstrap_indices(n: int, members: int, rng: np.random.Generator | torch.Gen
     return idx if device is None else idx.to(device)
 
 
+# ----------------------------------------------------------------------------- input statistics
+@torch.no_grad()
+def _merge_input_stats(module: nn.Module, x: torch.Tensor) -> None:
+    """Merge rows (N, in) into a module's buffers ``input_mean``, ``input_var``, ``input_count`` (exact
+    pooled mean and variance)."""
+    x = x.to(module.input_mean.dtype)
+    n = x.new_tensor(float(x.shape[0]))
+    batch_mean = x.mean(0)
+    batch_var = x.var(0, unbiased=False)
+    total = module.input_count + n
+    delta = batch_mean - module.input_mean
+    mean = module.input_mean + delta * (n / total)
+    m2 = module.input_var * module.input_count + batch_var * n + delta.pow(2) * (module.input_count * n / total)
+    module.input_mean.copy_(mean)
+    module.input_var.copy_(m2 / total)
+    module.input_count.copy_(total)
+
+
+def _input_std(module: nn.Module) -> torch.Tensor:
+    std = module.input_var.sqrt()
+    return torch.where(std < MIN_INPUT_STD, torch.ones_like(std), std)
+
+
 # ----------------------------------------------------------------------------- the ensemble
 class BatchedLinear(nn.Module):
     """``members`` independent linear layers as one batched matmul (weights (E, in, out), bias (E, 1, out)).
@@ -184,17 +214,7 @@ class ProbabilisticEnsemble(nn.Module):
         Called on every training batch, the statistics converge to those of the data the model is
         trained on; a model that is not trained any more (a frozen copy) keeps its own.
         """
-        x = torch.cat((obs, action), dim=-1).reshape(-1, self.in_dim).to(self.input_mean.dtype)
-        n = x.new_tensor(float(x.shape[0]))
-        batch_mean = x.mean(0)
-        batch_var = x.var(0, unbiased=False)
-        total = self.input_count + n
-        delta = batch_mean - self.input_mean
-        mean = self.input_mean + delta * (n / total)
-        m2 = self.input_var * self.input_count + batch_var * n + delta.pow(2) * (self.input_count * n / total)
-        self.input_mean.copy_(mean)
-        self.input_var.copy_(m2 / total)
-        self.input_count.copy_(total)
+        _merge_input_stats(self, torch.cat((obs, action), dim=-1).reshape(-1, self.in_dim))
 
     @torch.no_grad()
     def fit_input_stats(self, obs: torch.Tensor, action: torch.Tensor) -> None:
@@ -205,8 +225,7 @@ class ProbabilisticEnsemble(nn.Module):
         self.update_input_stats(obs, action)
 
     def input_std(self) -> torch.Tensor:
-        std = self.input_var.sqrt()
-        return torch.where(std < MIN_INPUT_STD, torch.ones_like(std), std)
+        return _input_std(self)
 
     # ------------------------------------------------------------ prediction
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -300,6 +319,103 @@ def make_optimizer(model: ProbabilisticEnsemble, lr: float = 1e-3, weight_decay:
                              {"params": others, "weight_decay": 0.0}], lr=lr)
 
 
+# ----------------------------------------------------------------------------- the world-model surface
+def ensemble_mean_next(ensemble: ProbabilisticEnsemble, obs: torch.Tensor, action: torch.Tensor,
+                       state_bounds: tuple[float, float] | None = None) -> torch.Tensor:
+    """The ensemble's mean next state s + mean_e mu_e(s, a)[:obs] for rows (N, ·), clamped to ``state_bounds``."""
+    mean, _ = ensemble(obs, action)
+    following = obs + mean[..., :ensemble.obs_dim].mean(0)
+    return following if state_bounds is None else following.clamp(*state_bounds)
+
+
+class PetsWorldModel(nn.Module):
+    """The ensemble behind the surface every continual method and evaluation uses on TD-MPC's ``WorldModel``.
+
+    ``encode`` is the identity; ``forward(z, a)`` is the ensemble's mean prediction of the next state, clamped
+    to the grid's [-1, 1] as the planner's particles are: what coverage, held-out retention, zero-shot
+    planning and DRAGO's intrinsic reward read (docs: Methods, PETS). ``raw_next`` gives each member's mean
+    prediction before the clamp, so rehearsal pulls every member towards its frozen old self rather than
+    only their average; ``transition_loss`` is the ensemble's own objective on rows, for methods that add
+    old transitions (replay) or measure the loss's curvature (EWC's Fisher).
+
+    The ensemble predicts next states only (``predict_reward=False``): rewards belong to each agent's
+    :class:`RewardHead`, which is what lets the ensemble be carried from task to task and shared by DRAGO's
+    learner and reviewer.
+    """
+
+    def __init__(self, ensemble: ProbabilisticEnsemble, state_bounds: tuple[float, float] | None = None):
+        super().__init__()
+        self.ensemble = ensemble
+        self.obs_dim = ensemble.obs_dim
+        self.action_dim = ensemble.action_dim
+        self.members = ensemble.members
+        self.state_bounds = state_bounds
+
+    def encode(self, obs: torch.Tensor) -> torch.Tensor:
+        return obs
+
+    def raw_next(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """(E, ..., obs): each member's mean next state, unclamped, for inputs of any leading shape (..., ·)."""
+        lead = z.shape[:-1]
+        flat = z.reshape(-1, self.obs_dim)
+        mean, _ = self.ensemble(flat, action.reshape(-1, self.action_dim))
+        return (flat + mean[..., :self.obs_dim]).reshape(self.members, *lead, self.obs_dim)
+
+    def forward(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The mean prediction over members of the next state, clamped to the state bounds (shape of ``z``)."""
+        following = self.raw_next(z, action).mean(0)
+        return following if self.state_bounds is None else following.clamp(*self.state_bounds)
+
+    def transition_loss(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """Sum over members of :func:`gaussian_nll` of the next-state deltas of rows (..., ·), every member on
+        every row: the ensemble's training objective without the bootstrap and the bound penalty."""
+        obs = obs.reshape(-1, self.obs_dim)
+        mean, logvar = self.ensemble(obs, action.reshape(-1, self.action_dim))
+        target = (next_obs.reshape(-1, self.obs_dim) - obs).expand(self.members, -1, -1)
+        return gaussian_nll(mean[..., :self.obs_dim], logvar[..., :self.obs_dim], target).sum()
+
+
+class RewardHead(nn.Module):
+    """One agent's learned reward r(s, a, s') for planning: an MLP (SiLU) over standardised inputs, trained by
+    squared error on that agent's rows; its last layer starts at zero, so a fresh head predicts 0 everywhere.
+
+    It is kept apart from the ensemble for the reason TD-MPC keeps its reward head apart from the world model
+    (docs: Design, principles): the ensemble is carried from task to task and shared by DRAGO's learner and
+    reviewer, whose rewards differ (the task's; the intrinsic one). The next state is an input because
+    the planner scores each particle's own sampled transition.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: int = 200, layers: int = 2):
+        super().__init__()
+        self.in_dim = 2 * obs_dim + action_dim
+        modules: list[nn.Module] = []
+        for a, b in itertools.pairwise([self.in_dim] + [hidden] * layers):
+            modules += [nn.Linear(a, b), nn.SiLU()]
+        last = nn.Linear(hidden, 1)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+        self.net = nn.Sequential(*modules, last)
+        self.register_buffer("input_mean", torch.zeros(self.in_dim))
+        self.register_buffer("input_var", torch.ones(self.in_dim))
+        self.register_buffer("input_count", torch.zeros(()))
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """(...,) rewards of rows (..., ·)."""
+        x = torch.cat((obs, action, next_obs), dim=-1)
+        return self.net((x - self.input_mean) / _input_std(self)).squeeze(-1)
+
+    def train_step(self, optimizer: torch.optim.Optimizer, obs: torch.Tensor, action: torch.Tensor,
+                   next_obs: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
+        """One step of mean squared error on rows (N, ·), their inputs merged into the statistics first;
+        the loss, detached."""
+        _merge_input_stats(self, torch.cat((obs, action, next_obs), dim=-1))
+        loss = (self(obs, action, next_obs) - reward.to(obs.dtype)).pow(2).mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return loss.detach()
+
+
 # ----------------------------------------------------------------------------- trajectory sampling
 class Rollout(NamedTuple):
     """Particles of :func:`propagate`.
@@ -323,20 +439,28 @@ def _assign_members(count: int, particles: int, members: int, device: torch.devi
     return order % members
 
 
+def _member_order(member: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(order, inverse): the permutation that sorts rows by their member, and its inverse."""
+    order = torch.argsort(member, stable=True)
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(order.shape[0], device=order.device)
+    return order, inverse
+
+
 def _predict_assigned(model: nn.Module, obs: torch.Tensor, action: torch.Tensor, member: torch.Tensor,
-                      balanced: bool) -> tuple[torch.Tensor, torch.Tensor]:
+                      balanced: bool, order: tuple[torch.Tensor, torch.Tensor] | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """(mean, logvar), each (R, out), of rows (R, ·), row r predicted by member ``member[r]``.
 
     Balanced assignments (each member R/E rows) are sorted by member and run as (E, R/E, ·): every row
     costs one member's forward. Otherwise every member predicts every row and the row's own is kept.
+    ``order`` is :func:`_member_order` of ``member`` when the caller already has it.
     """
     rows = obs.shape[0]
     if balanced:
-        order = torch.argsort(member, stable=True)
+        order, inverse = order if order is not None else _member_order(member)
         e = model.members
         mean, logvar = model(obs[order].view(e, rows // e, -1), action[order].view(e, rows // e, -1))
-        inverse = torch.empty_like(order)
-        inverse[order] = torch.arange(rows, device=order.device)
         return mean.reshape(rows, -1)[inverse], logvar.reshape(rows, -1)[inverse]
     mean, logvar = model(obs, action)
     pick = member.view(1, rows, 1).expand(1, rows, mean.shape[-1])
@@ -388,12 +512,16 @@ def propagate(model: nn.Module, obs: torch.Tensor, actions: torch.Tensor, partic
     state = state.repeat_interleave(particles, dim=0)  # (N * P, obs), candidate-major
     balanced = particles % model.members == 0
     member = _assign_members(count, particles, model.members, state.device, generator).view(rows)
+    # TS-inf sorts its rows by member once per call, not once per step.
+    order = _member_order(member) if balanced else None
+    action_rows = actions.repeat_interleave(particles, dim=1)  # (H, N * P, act), candidate-major
     states, rewards, used = [state], [], []
     for t in range(horizon):
         if mode == "ts1" and t > 0:
             member = _assign_members(count, particles, model.members, state.device, generator).view(rows)
-        action = actions[t].repeat_interleave(particles, dim=0)
-        mean, logvar = _predict_assigned(model, state, action, member, balanced)
+            order = _member_order(member) if balanced else None
+        action = action_rows[t]
+        mean, logvar = _predict_assigned(model, state, action, member, balanced, order)
         noise = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
         sample = mean + torch.exp(0.5 * logvar) * noise
         next_state = state + sample[:, :obs_dim]
@@ -561,52 +689,74 @@ class PetsConfig:
 
 
 class PetsAgent:
-    """PETS behind the surface the trainer uses on TD-MPC's ``Agent``.
+    """PETS behind the surface the trainer and the continual methods use on TD-MPC's ``Agent``.
 
-    Rewards: by default the ensemble learns the reward with the dynamics (``predict_reward``), and the
-    planner scores sequences with the sampled predicted rewards. This is what the DRAGO paper's
-    Appendix E implies: DRAGO-PETS runs the MiniGrid tasks with dense reward because the authors could
-    not make PETS work with sparse reward, the failure of a reward the agent has to learn from its data
-    (a sparse reward is almost always 0, so a learned reward model and the predicted returns are flat),
-    and DRAGO's tasks, its reviewer's reward included, are given to the agent only through rewards in
-    the data, as for TD-MPC's reward head. The alternative, ``known_reward=r(s, a, s')`` evaluated on the
-    predicted states, is Chua et al.'s own setting, where each task's cost function is given.
+    Rewards, three ways:
+
+    * ``reward_head`` (what drago's trainer builds, ``agent.pets_reward=learned``): the agent learns
+      r(s, a, s') with a :class:`RewardHead` of its own, over a :class:`PetsWorldModel` that predicts states
+      only, and plans on the head's reward of each particle's transition. This is what the DRAGO paper's
+      Appendix E implies: DRAGO-PETS runs the MiniGrid tasks with dense reward because the authors could not
+      make PETS work with sparse reward, the failure of a reward the agent has to learn from its data (a
+      sparse reward is almost always 0, so a learned reward and the predicted returns are flat), and
+      DRAGO's tasks, its reviewer's reward included, reach the agent only through rewards in the data, as
+      for TD-MPC's reward head.
+    * ``known_reward=r(s, a, s')`` evaluated on the predicted rows (``agent.pets_reward=known``): Chua et
+      al.'s own setting, where each task's cost function is given.
+    * neither: the ensemble learns the reward with the dynamics (``predict_reward``), the standalone form.
 
     Differences from TD-MPC's ``Agent``:
 
     * no latent space: the ensemble predicts next observations (through deltas) directly;
-    * no task heads (reward, policy, Q): no value bootstrap, the planner's return is the predicted
-      H-step return alone, and ``update`` trains the world model only;
+    * no policy or value heads: no value bootstrap, the planner's return is the predicted H-step return
+      alone, so methods that need a TD target (curiosity) cannot run on it;
     * the planner has no policy prior, no horizon or std schedule (``step`` is unused), and its
       stochasticity comes from the ensemble and the CEM samples;
     * ``update`` returns a uniform ``priority``: PETS samples its data uniformly;
-    * ``state_dict`` holds only the planner's warm start: the world model and its optimizer are passed
-      in and saved by whoever owns them, as for TD-MPC's ``Agent``.
+    * ``state_dict`` holds the planner's warm start and the reward head with its optimizer: the world model
+      and its optimizer are passed in and saved by whoever owns them, as for TD-MPC's ``Agent``.
 
     Args:
-        world_model: the ensemble; a continual method may share, copy or freeze it.
+        world_model: the ensemble, or a :class:`PetsWorldModel` around one; a continual method may share,
+            copy or freeze it.
         world_optimizer: its optimizer (None: :func:`make_optimizer` with ``cfg.lr``, ``cfg.weight_decay``).
         cfg: agent settings.
         discrete: one-hot actions (grid; predicted states then clamped to [-1, 1]) or continuous in [-1, 1].
-        known_reward: the task's reward r(s, a, s') on predicted rows instead of the learned one.
+        known_reward: the task's reward r(s, a, s') on predicted rows instead of a learned one.
         generator: torch Generator of the planner's and the bootstrap's draws, on the world model's device
-            (None: the global RNG).
+            (None: the global RNG, which drago's trainer saves with every resumable checkpoint).
+        reward_head: the agent's own learned reward (exclusive with ``known_reward``).
     """
 
-    def __init__(self, world_model: ProbabilisticEnsemble, world_optimizer: torch.optim.Optimizer | None = None,
-                 cfg: PetsConfig | None = None, discrete: bool = True, known_reward: RewardFn | None = None,
-                 generator: torch.Generator | None = None):
+    def __init__(self, world_model: ProbabilisticEnsemble | PetsWorldModel,
+                 world_optimizer: torch.optim.Optimizer | None = None, cfg: PetsConfig | None = None,
+                 discrete: bool = True, known_reward: RewardFn | None = None,
+                 generator: torch.Generator | None = None, reward_head: RewardHead | None = None):
         self.cfg = cfg or PetsConfig()
         self.world_model = world_model
-        self.world_optimizer = world_optimizer or make_optimizer(world_model, self.cfg.lr, self.cfg.weight_decay)
+        self.ensemble: ProbabilisticEnsemble = getattr(world_model, "ensemble", world_model)
+        self.world_optimizer = world_optimizer or make_optimizer(self.ensemble, self.cfg.lr, self.cfg.weight_decay)
         self.discrete = discrete
-        self.known_reward = known_reward
         self.generator = generator
-        self.device = next(world_model.parameters()).device
+        self.device = next(self.ensemble.parameters()).device
         self.state_bounds = (-1.0, 1.0) if discrete else None
         self._warm_mean: torch.Tensor | None = None
-        if known_reward is None and not world_model.predict_reward:
-            raise ValueError("an ensemble without a reward output needs known_reward")
+        if reward_head is not None and known_reward is not None:
+            raise ValueError("give a learned reward_head or a known_reward, not both")
+        self.reward_head = reward_head
+        self.reward_optimizer = (torch.optim.Adam(reward_head.parameters(), lr=self.cfg.lr)
+                                 if reward_head is not None else None)
+        self.known_reward = known_reward
+        self._plan_reward: RewardFn | None = known_reward if reward_head is None else reward_head
+        if self._plan_reward is None and not self.ensemble.predict_reward:
+            raise ValueError("an ensemble without a reward output needs known_reward or a reward_head")
+        # What the trainer saves as the task's learner beside the world model (TD-MPC: its heads).
+        self.heads: nn.Module = reward_head if reward_head is not None else nn.Module()
+        self.std_floor = float(self.cfg.plan.min_std)
+
+    def autocast(self):
+        """PETS runs in float32: nothing to enter (the TD-MPC agent's reduced-precision context)."""
+        return contextlib.nullcontext()
 
     # ------------------------------------------------------------------ acting
     @torch.no_grad()
@@ -616,17 +766,18 @@ class PetsAgent:
         batch (numpy in, numpy out). ``step`` is unused (PETS has no schedules)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         warm = None if first_step or self.discrete else self._warm_mean
-        if warm is not None and warm.dim() != obs_t.dim():
-            warm = None  # a plan for another number of problems
-        result = cem(self.world_model, obs_t, self.cfg.plan, self.discrete, eval_mode=eval_mode, warm_mean=warm,
-                     generator=self.generator, known_reward=self.known_reward, state_bounds=self.state_bounds,
+        # A plan for another number of problems (an evaluation's batch between learner steps) cannot warm this one.
+        if warm is not None and (warm.dim() != obs_t.dim() + 1 or (obs_t.dim() == 2 and warm.shape[1] != obs_t.shape[0])):
+            warm = None
+        result = cem(self.ensemble, obs_t, self.cfg.plan, self.discrete, eval_mode=eval_mode, warm_mean=warm,
+                     generator=self.generator, known_reward=self._plan_reward, state_bounds=self.state_bounds,
                      bonus=bonus)
         if not self.discrete:
             self._warm_mean = result.mean
         return result.action.cpu().numpy()
 
     def random_action(self, rng: np.random.Generator) -> np.ndarray:
-        return random_action(rng, self.world_model.action_dim, self.discrete, self.cfg.random_action_probs)
+        return random_action(rng, self.ensemble.action_dim, self.discrete, self.cfg.random_action_probs)
 
     # ---------------------------------------------------------------- learning
     @staticmethod
@@ -638,27 +789,51 @@ class PetsAgent:
         return (states.reshape(-1, obs_dim), batch.actions.reshape(-1, act_dim),
                 batch.next_obs.reshape(-1, obs_dim), batch.rewards.reshape(-1))
 
+    def rollout(self, obs: torch.Tensor, actions: torch.Tensor) -> None:
+        """Nothing: TD-MPC shares one latent rollout between DRAGO's two updates; PETS has no latents."""
+
+    @torch.no_grad()
+    def prediction_score(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """Mean over rows of -log(mean_dims (mean prediction - s')^2): the one-step form of TD-MPC's prediction
+        score, the quantity DRAGO's intrinsic reward compares with its threshold (paper §3.2)."""
+        predicted = ensemble_mean_next(self.ensemble, obs, action, self.state_bounds)
+        return -torch.log((predicted - next_obs).pow(2).mean(-1) + LOG_EPS).mean()
+
     def update(self, batch: Any, step: int = 0, train_world_model: bool = True,
-               world_model_loss: Callable[[], torch.Tensor] | None = None, **unused: Any) -> dict[str, torch.Tensor]:
-        """One bootstrapped gradient step of the ensemble on a replay ``Batch``; metrics as tensors (no
-        host sync), with a uniform ``priority`` per sequence. Options of TD-MPC's ``update`` that concern
-        its heads (``policy_rows``, ``curiosity_coef``, ``latents``) are accepted and ignored; without
-        ``train_world_model`` there is nothing to train."""
-        rows = batch.obs.shape[0]
+               world_model_loss: Callable[[], torch.Tensor] | None = None, policy_rows: int | None = None,
+               **unused: Any) -> dict[str, torch.Tensor]:
+        """One bootstrapped gradient step of the ensemble (when ``train_world_model``) and one of the reward
+        head on a replay ``Batch``; metrics as tensors (no host sync), with a uniform ``priority`` for the
+        first ``policy_rows`` sequences (all without it). Options of TD-MPC's ``update`` that concern its
+        policy and value heads (``curiosity_coef``, ``latents``) are accepted and ignored."""
+        rows = batch.obs.shape[0] if policy_rows is None else policy_rows
         priority = batch.obs.new_ones(rows)
-        if not train_world_model:
-            return {"priority": priority}
-        obs, action, next_obs, reward = self.transitions(batch)
-        metrics = self.world_model.train_step(self.world_optimizer, obs, action, next_obs, reward,
-                                              self.generator, extra_loss=world_model_loss)
-        metrics = {f"model_{k}": v for k, v in metrics.items()}
+        metrics: dict[str, torch.Tensor] = {}
+        if train_world_model or self.reward_head is not None:
+            obs, action, next_obs, reward = self.transitions(batch)
+        if train_world_model:
+            score = self.prediction_score(obs, action, next_obs)
+            model = self.ensemble.train_step(self.world_optimizer, obs, action, next_obs,
+                                             reward if self.ensemble.predict_reward else None, self.generator,
+                                             extra_loss=world_model_loss)
+            metrics = {f"model_{k}": v for k, v in model.items()}
+            metrics["mean_prediction_score"] = score
+        if self.reward_head is not None:
+            metrics["reward_loss"] = self.reward_head.train_step(self.reward_optimizer, obs, action, next_obs, reward)
         metrics["priority"] = priority
         return metrics
 
     # ------------------------------------------------------------- persistence
     def state_dict(self) -> dict[str, Any]:
-        return {"warm_mean": None if self._warm_mean is None else self._warm_mean.clone()}
+        state: dict[str, Any] = {"warm_mean": None if self._warm_mean is None else self._warm_mean.clone()}
+        if self.reward_head is not None:
+            state["reward_head"] = self.reward_head.state_dict()
+            state["reward_optimizer"] = self.reward_optimizer.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         warm = state.get("warm_mean")
         self._warm_mean = None if warm is None else warm.to(self.device)
+        if self.reward_head is not None:
+            self.reward_head.load_state_dict(state["reward_head"])
+            self.reward_optimizer.load_state_dict(state["reward_optimizer"])

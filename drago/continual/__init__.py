@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from drago.config import Config
+from drago.config import Config, ConfigError
 from drago.continual.base import ContinualMethod, TaskState
 from drago.continual.curiosity import Curiosity
 from drago.continual.drago import Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal
@@ -21,12 +21,15 @@ def available_methods() -> list[str]:
 
 
 def check_method(cfg: Config) -> Config:
-    """``cfg``, once its method is known to exist (:func:`drago.config.validate` checks everything else).
+    """``cfg``, once its method is known to exist and to run with these settings
+    (:meth:`ContinualMethod.config_problem`; :func:`drago.config.validate` checks everything else).
 
     Raises:
-        ConfigError: an unknown method.
+        ConfigError: an unknown method, or one that cannot run with ``cfg`` (one line).
     """
-    get_method(cfg.method.name)
+    problem = get_method(cfg.method.name).config_problem(cfg)
+    if problem is not None:
+        raise ConfigError(f"method '{cfg.method.name}' {problem}")
     return cfg
 
 

@@ -111,6 +111,16 @@ class ContinualMethod:
         self.spec = spec
         self.device = device
 
+    @classmethod
+    def config_problem(cls, cfg: Config) -> str | None:
+        """Why this method cannot run with ``cfg`` (completing "method 'NAME' ..."), or None when it can.
+
+        Checked when the config is loaded, so a method that needs what the agent lacks (TD-MPC's value heads
+        on ``agent.kind=pets``) says so in one line before anything runs. The hooks' defaults serve both
+        agent kinds.
+        """
+        return None
+
     # ---- task boundaries -------------------------------------------------------------------
     def begin_task(self, task: TaskState) -> None:
         """Called once the task's world model, learner and buffer exist, before any step."""

@@ -20,3 +20,10 @@ class Curiosity(ContinualMethod):
     def __init__(self, cfg, spec, device):
         super().__init__(cfg, spec, device)
         self.curiosity_coef = cfg.method.curiosity_coef
+
+    @classmethod
+    def config_problem(cls, cfg):
+        if cfg.agent.kind != "tdmpc":
+            return (f"needs TD-MPC's value heads (its bonus enters the learner's TD target), which "
+                    f"agent.kind={cfg.agent.kind} lacks; use agent.kind=tdmpc or another method")
+        return None

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from drago.agent.agent import Agent
 from drago.agent.buffer import Batch, EpisodeReplay
+from drago.agent.factory import build_agent, replay_horizon
 from drago.continual.base import ContinualMethod, TaskState, buffer_capacity
 from drago.continual.generative import (
     VAE,
@@ -82,9 +82,10 @@ class Drago(ContinualMethod):
         self.old_vae = copy.deepcopy(self.vae).requires_grad_(False) if previous and self.use_rehearsal else None
         self.reviewer = None
         if previous and self.use_reviewer and not self.single_agent:
-            self.reviewer = Agent(task.world_model, task.world_optimizer, cfg.agent, self.spec.discrete, reviewer=True)
+            self.reviewer = build_agent(cfg, self.spec, task.world_model, task.world_optimizer, task=task.name,
+                                        reviewer=True)
             capacity = buffer_capacity(task.budget.max_reviewer_steps, cfg.env.episode_length)
-            self.reviewer_buffer = EpisodeReplay(capacity, self.spec.obs_dim, self.spec.action_dim, cfg.agent.horizon,
+            self.reviewer_buffer = EpisodeReplay(capacity, self.spec.obs_dim, self.spec.action_dim, replay_horizon(cfg),
                                                  cfg.env.episode_length, cfg.agent.per_alpha, cfg.agent.per_beta,
                                                  device=self.device)
             self.counts = None
@@ -155,8 +156,10 @@ class Drago(ContinualMethod):
             # One world-model rollout, with its graph, over all 2B rows feeds both updates: the learner's
             # update (first, as in the official order) does not change the world model, so its rows' latents
             # are exactly those its own no-grad rollout would give. The reviewer's backward then trains it.
+            # A PETS agent has no latents to share (None).
             latents = self.reviewer.rollout(combined.obs, combined.actions)
-            out = task.learner.update(learner_batch, u, train_world_model=False, latents=latents[:, B:].detach())
+            out = task.learner.update(learner_batch, u, train_world_model=False,
+                                      latents=None if latents is None else latents[:, B:].detach())
             task.buffer.update_priorities(learner_batch.indices, out.pop("priority"))
             metrics.update({f"learner_{k}": v for k, v in out.items()})
             out = self.reviewer.update(combined, u, train_world_model=True, policy_rows=B, world_model_loss=joint,
@@ -249,6 +252,13 @@ class DragoSingleAgent(Drago):
     name = "drago-single-agent"
     description = "DRAGO with one learner that adds the reviewer's intrinsic reward to the task reward"
     single_agent = True
+
+    @classmethod
+    def config_problem(cls, cfg):
+        if cfg.agent.kind == "pets" and cfg.agent.pets_reward == "known":
+            return ("adds the intrinsic reward to the rewards the learner learns from, and with "
+                    "agent.pets_reward=known the learner learns none; use agent.pets_reward=learned")
+        return None
 
 
 class PseudoRehearsal(Drago):

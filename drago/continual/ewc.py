@@ -78,7 +78,9 @@ def fisher_diagonal(world_model: nn.Module, batches: Iterable[SequenceBatch], ho
     a Gaussian negative log-likelihood with fixed variance up to a constant factor, so its gradients
     are those of the log-likelihood the Fisher is defined on.
 
-    Batches drawn from the PER buffer lean towards high-TD-error sequences; they are used unweighted.
+    Batches drawn from the PER buffer lean towards high-TD-error sequences; they are used unweighted. A
+    world model with a ``transition_loss`` of its own (PETS's ensemble NLL, the loss it is trained on) is
+    measured on that instead, over every transition of each batch's sequences.
 
     Args:
         world_model: the model whose parameters the Fisher is about (left unchanged, no ``.grad`` written).
@@ -98,9 +100,14 @@ def fisher_diagonal(world_model: nn.Module, batches: Iterable[SequenceBatch], ho
     names, tensors = list(params), list(params.values())
     fisher = {name: torch.zeros_like(p) for name, p in params.items()}
     count = 0
+    own = getattr(world_model, "transition_loss", None)
     for batch in batches:
-        steps = batch.actions.shape[0] if horizon is None else horizon
-        loss = consistency_loss(world_model, batch.obs, batch.actions, batch.next_obs, steps, rho).mean()
+        if own is not None:  # a world model with an objective of its own (PETS): every transition of the batch
+            states = torch.cat((batch.obs[None], batch.next_obs[:-1]))
+            loss = own(states, batch.actions, batch.next_obs)
+        else:
+            steps = batch.actions.shape[0] if horizon is None else horizon
+            loss = consistency_loss(world_model, batch.obs, batch.actions, batch.next_obs, steps, rho).mean()
         # allow_unused: a parameter outside the loss's graph has gradient (and Fisher) zero.
         grads = torch.autograd.grad(loss, tensors, allow_unused=True)
         for name, g in zip(names, grads):

@@ -155,7 +155,11 @@ def stored_transitions(buffer: EpisodeReplay) -> tuple[torch.Tensor, torch.Tenso
 
 def replay_loss(world_model: nn.Module, obs: torch.Tensor, actions: torch.Tensor,
                 next_obs: torch.Tensor) -> torch.Tensor:
-    """One-step consistency loss ``mean_rows mse(d(h(s), a), h(s'))`` of replayed transitions."""
+    """One-step consistency loss ``mean_rows mse(d(h(s), a), h(s'))`` of replayed transitions, or the world
+    model's own objective on them when it has one (``transition_loss``: PETS's ensemble NLL)."""
+    own = getattr(world_model, "transition_loss", None)
+    if own is not None:
+        return own(obs, actions, next_obs)
     predicted = world_model(world_model.encode(obs), actions)
     return prediction_error(predicted, world_model.encode(next_obs)).mean()
 
@@ -196,7 +200,10 @@ class Replay(ContinualMethod):
 
     def __init__(self, cfg: Config, spec: EnvSpec, device: torch.device):
         super().__init__(cfg, spec, device)
-        self.weight = replay_weight(cfg.agent.consistency_coef, cfg.agent.horizon, cfg.method.replay_fraction)
+        # A PETS ensemble's objective is its NLL averaged over single transitions with coefficient 1 (docs:
+        # Methods, PETS): there an old transition weighs as a one-step sequence of coefficient 1.
+        coef, steps = (cfg.agent.consistency_coef, cfg.agent.horizon) if cfg.agent.kind == "tdmpc" else (1.0, 1)
+        self.weight = replay_weight(coef, steps, cfg.method.replay_fraction)
         # Own generator: the reservoir's draws never disturb the task's sampling stream.
         rng = np.random.default_rng(np.random.SeedSequence([cfg.train.seed, 0x5E5E7]))
         self.reservoir = ReservoirBuffer(cfg.method.replay_capacity, spec.obs_dim, spec.action_dim, rng, device)

@@ -17,7 +17,9 @@ from typing import Any
 
 import torch
 
-from drago.agent.networks import WorldModel, build_world_model
+from drago.agent.factory import build_world_model
+from drago.agent.networks import WorldModel
+from drago.agent.pets import PetsWorldModel
 from drago.config import Config, ConfigError
 from drago.envs import EnvSpec, env_spec
 from drago.training.rundir import atomic_write
@@ -108,14 +110,15 @@ class TaskCheckpoint:
         data: everything it stores (see the module docstring).
         config: the config of the run that wrote it.
         spec: its domain's sizes.
-        world_model: the world model after the task, rebuilt from ``config`` and loaded strictly.
+        world_model: the world model after the task, rebuilt from ``config`` (its ``agent.kind``) and loaded
+            strictly.
     """
 
     path: Path
     data: dict[str, Any]
     config: Config
     spec: EnvSpec
-    world_model: WorldModel
+    world_model: WorldModel | PetsWorldModel
 
     @property
     def task(self) -> str | None:

@@ -11,6 +11,8 @@ import numpy as np
 import torch
 
 from drago.agent.agent import Agent
+from drago.agent.factory import build_agent
+from drago.agent.pets import PetsAgent
 from drago.agent.networks import linear_schedule
 from drago.config import Config
 from drago.training.checkpoint import CheckpointError, load_task_checkpoint
@@ -28,7 +30,7 @@ class SavedLearner:
         steps: the task's step counter at its end, where the learner's horizon schedule stood.
     """
 
-    agent: Agent
+    agent: Agent | PetsAgent
     config: Config
     task: str
     task_index: int
@@ -49,7 +51,7 @@ def load_learner(path: str | Path, device: torch.device | str = "cpu") -> SavedL
     if "learner" not in data:
         raise CheckpointError(f"{path} holds no learner heads; it cannot drive a pre-rollout or record held-out data")
     with seeded_torch_rng(0, device):  # the heads' initial weights, overwritten below
-        agent = Agent(loaded.world_model, None, cfg.agent, loaded.spec.discrete)
+        agent = build_agent(cfg, loaded.spec, loaded.world_model, None, task=str(data["task"]))
     agent.heads.load_state_dict(data["learner"])
     steps = int(data["steps"])
     a = cfg.agent

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from drago.agent.agent import Agent
 from drago.agent.buffer import EpisodeReplay, NonFinitePriority
-from drago.agent.networks import build_world_model
+from drago.agent.factory import build_agent, build_world_model, build_world_optimizer, replay_horizon
 from drago.config import Config
 from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
 from drago.envs import EnvSpec, make_env, task_optimum
@@ -146,11 +146,11 @@ class Trainer:
             if not self.method.fresh_world_model:
                 world_model.load_state_dict(previous["world_model"])
             self.method.load_carry_state(previous["method"])
-        world_optimizer = torch.optim.Adam(world_model.dynamics.parameters(), lr=cfg.agent.lr)
-        learner = Agent(world_model, world_optimizer, cfg.agent, spec.discrete)
+        world_optimizer = build_world_optimizer(cfg, world_model)
+        learner = build_agent(cfg, spec, world_model, world_optimizer, task=name)
         budget = Budget.from_config(cfg)
         capacity = buffer_capacity(budget.max_learner_steps, cfg.env.episode_length)
-        buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, cfg.agent.horizon, cfg.env.episode_length,
+        buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, replay_horizon(cfg), cfg.env.episode_length,
                                cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
         task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,
                          learner=learner, buffer=buffer, rng=rng, env=env, budget=budget)

@@ -10,7 +10,8 @@ and a fixed seed gives the same logs.
 The transfer's config is the source run's with these changes:
 
 * ``env.tasks`` is the one test task, with the task catalogue's reward (test tasks sparse, training
-  tasks dense) unless asked otherwise;
+  tasks dense) unless asked otherwise, by the command or by the source run's ``transfer.reward``
+  (the PETS presets: dense, as in paper Appendix E);
 * ``agent.seed_steps=0``: no random seed phase, as in the authors' logged transfer run; actions are
   still random until the buffer holds one batch;
 * separate budgets (``train.learner_steps_per_task``) of ``episodes`` learner episodes; DRAGO's reviewer
@@ -155,7 +156,8 @@ def transfer_config(source: Config, task: str, checkpoint: str, after: int, epis
         few_shot_episodes: learner episodes after which the few-shot score is read (None: 20, or
             ``episodes`` if fewer).
         eval_every: evaluate after every this many learner episodes.
-        dense_reward: None for the catalogue's reward type of ``task``.
+        dense_reward: None for the source run's ``transfer.reward``, and when that is unset too the
+            catalogue's reward type of ``task``.
         pre_rollout_checkpoint: task checkpoint of the learner that starts every learner and evaluation
             episode (relative to the transfer run's directory, or absolute); required by the X2Y test tasks.
         pre_rollout_steps: agent steps of that pre-rollout (None: the test task's, 100).
@@ -174,6 +176,8 @@ def transfer_config(source: Config, task: str, checkpoint: str, after: int, epis
     cfg = copy.deepcopy(source)
     steps = episodes * cfg.env.episode_length
     cfg.env.tasks = (target,)
+    if dense_reward is None and source.transfer.reward is not None:
+        dense_reward = source.transfer.reward == "dense"
     cfg.env.dense_reward = dense_reward
     cfg.agent.seed_steps = 0
     cfg.train.learner_steps_per_task = steps

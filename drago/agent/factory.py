@@ -1,0 +1,89 @@
+"""The agent a run's ``agent.kind`` asks for: TD-MPC (the paper's) or PETS (the paper's Appendix E).
+
+Everything that differs between the two kinds at the points where the trainer, the continual methods and
+the checkpoint loader build things is here, so none of them tests the kind: the world model each task
+carries, its optimizer, an agent (learner or DRAGO's reviewer) over it, and the length of the replay
+sequences it learns from (docs: Methods, PETS).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from drago.agent.agent import Agent
+from drago.agent.networks import build_world_model as build_tdmpc_world_model
+from drago.agent.pets import (
+    PetsAgent,
+    PetsConfig,
+    PetsPlanSettings,
+    PetsWorldModel,
+    RewardFn,
+    RewardHead,
+    make_optimizer,
+)
+from drago.config import Config
+from drago.envs import EnvSpec
+from drago.envs.grid_reward import true_reward
+from drago.envs.tasks import get_grid_task
+
+__all__ = ["build_agent", "build_world_model", "build_world_optimizer", "pets_config", "replay_horizon"]
+
+
+def pets_config(cfg: Config) -> PetsConfig:
+    """The PETS agent's settings from ``cfg.agent``. The ensemble predicts states only: rewards are learned by
+    each agent's own head (or given), so the ensemble can be carried across tasks (docs: Methods, PETS)."""
+    a = cfg.agent
+    plan = PetsPlanSettings(horizon=a.pets_horizon, iterations=a.pets_iterations, population=a.pets_population,
+                            elites=a.pets_elites, particles=a.pets_particles, momentum=a.momentum,
+                            propagation=a.pets_propagation)
+    return PetsConfig(members=a.pets_members, hidden=a.pets_hidden, layers=a.pets_layers, lr=a.lr,
+                      predict_reward=False, plan=plan, random_action_probs=a.random_action_probs)
+
+
+def build_world_model(cfg: Config, spec: EnvSpec, device: torch.device | str = "cpu") -> nn.Module:
+    """The world model a run of ``cfg`` trains and its checkpoints hold: TD-MPC's
+    :class:`~drago.agent.networks.WorldModel` or PETS's :class:`~drago.agent.pets.PetsWorldModel`."""
+    if cfg.agent.kind == "tdmpc":
+        return build_tdmpc_world_model(cfg, spec, device)
+    ensemble = pets_config(cfg).build_world_model(spec.obs_dim, spec.action_dim, device)
+    # The grid's observations lie in [-1, 1], where TD-MPC's dynamics end in tanh (paper Appendix A).
+    return PetsWorldModel(ensemble, (-1.0, 1.0) if spec.discrete else None)
+
+
+def build_world_optimizer(cfg: Config, world_model: nn.Module) -> torch.optim.Optimizer:
+    """The one optimizer of a task's world model, shared by the agents that train it (DRAGO's two)."""
+    if cfg.agent.kind == "tdmpc":
+        return torch.optim.Adam(world_model.dynamics.parameters(), lr=cfg.agent.lr)
+    return make_optimizer(world_model.ensemble, cfg.agent.lr)
+
+
+def _known_reward(cfg: Config, task: str) -> RewardFn:
+    grid_task = get_grid_task(task, dense=cfg.env.dense_reward)
+    return lambda obs, action, next_obs: true_reward(grid_task, obs, action, next_obs).to(obs.dtype)
+
+
+def build_agent(cfg: Config, spec: EnvSpec, world_model: nn.Module, world_optimizer: torch.optim.Optimizer | None,
+                task: str | None = None, reviewer: bool = False) -> Agent | PetsAgent:
+    """A learner (or with ``reviewer`` DRAGO's reviewer) of task ``task`` over ``world_model``.
+
+    A PETS agent gets a fresh reward head of its own, as a TD-MPC agent gets fresh heads; with
+    ``agent.pets_reward=known`` the learner plans on the task's true reward instead, while the reviewer,
+    whose intrinsic reward exists only as labels of its data, always learns its own.
+    """
+    if cfg.agent.kind == "tdmpc":
+        return Agent(world_model, world_optimizer, cfg.agent, spec.discrete, reviewer=reviewer)
+    settings = pets_config(cfg)
+    if cfg.agent.pets_reward == "known" and not reviewer:
+        if task is None:
+            raise ValueError("a PETS learner with agent.pets_reward=known needs its task")
+        return PetsAgent(world_model, world_optimizer, settings, spec.discrete, known_reward=_known_reward(cfg, task))
+    device = next(world_model.parameters()).device
+    head = RewardHead(spec.obs_dim, spec.action_dim, settings.hidden).to(device)
+    return PetsAgent(world_model, world_optimizer, settings, spec.discrete, reward_head=head)
+
+
+def replay_horizon(cfg: Config) -> int:
+    """H of the replay buffers' (H+1)-step sequences: TD-MPC's training horizon; for PETS, which learns from
+    single transitions, pairs (H = 1, the buffer's least) whose two transitions both train it."""
+    return cfg.agent.horizon if cfg.agent.kind == "tdmpc" else 1

@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import csv
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -26,3 +31,41 @@ def filled_buffer(device_priorities: bool, obs_dim: int = 3, act_dim: int = 2, h
     for _ in range(episodes):
         buf.add_episode(rng.random((length + 1, obs_dim)), rng.random((length, act_dim)), rng.random(length))
     return buf
+
+
+#: Subprocess runs use one thread, as the test process does.
+ONE_THREAD_ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: float = 300.0) -> int:
+    """Start ``drago train *train_args --out run`` in a child process and SIGKILL it once a periodic checkpoint
+    of task 2 exists; returns the child's exit status (``-SIGKILL`` when the kill landed).
+
+    A periodic snapshot of task 2 is a ``resume.pt`` newer than task 1's checkpoint (task 1's own last
+    snapshot exists for a moment next to ``task1_room1.pt`` before it is deleted). ``wait_s`` bounds the wait,
+    generously for a loaded machine.
+    """
+    drago = Path(sys.executable).parent / "drago"
+    resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
+
+    def in_task2_with_checkpoint() -> bool:
+        try:
+            return resume_ckpt.stat().st_mtime_ns > task1.stat().st_mtime_ns
+        except FileNotFoundError:
+            return False
+
+    with (cwd / "train.log").open("w") as log:
+        proc = subprocess.Popen([str(drago), "train", *train_args, "--out", str(run)], stdout=log,
+                                stderr=subprocess.STDOUT, env=ONE_THREAD_ENV, cwd=cwd)
+        deadline = time.monotonic() + wait_s
+        try:
+            while not in_task2_with_checkpoint():
+                assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
+                assert time.monotonic() < deadline, f"no periodic checkpoint in task 2 within {wait_s:.0f} s"
+                time.sleep(0.02)
+            proc.send_signal(signal.SIGKILL)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+    return proc.returncode

@@ -10,18 +10,16 @@ from __future__ import annotations
 import copy
 import importlib.util
 import json
-import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-from helpers import QUIET, read_csv
+from helpers import ONE_THREAD_ENV, QUIET, read_csv, sigkill_in_task_two
 
 from drago import cli
 from drago.agent import pets as pets_module
@@ -323,35 +321,13 @@ def test_sigkill_then_resume_gives_the_uninterrupted_logs(tmp_path):
     assert cli.main(["train", *args, "--out", str(reference)]) == 0
 
     run = tmp_path / "killed"
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    log = (tmp_path / "train.log").open("w")
-    proc = subprocess.Popen([str(DRAGO), "train", *args, "--out", str(run)], stdout=log, stderr=subprocess.STDOUT,
-                            env=env, cwd=tmp_path)
-    resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
-    deadline = time.monotonic() + 120
-
-    def in_task2_with_checkpoint() -> bool:
-        try:
-            return resume_ckpt.stat().st_mtime_ns > task1.stat().st_mtime_ns
-        except FileNotFoundError:
-            return False
-
-    try:
-        while not in_task2_with_checkpoint():
-            assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
-            assert time.monotonic() < deadline, "no periodic checkpoint in task 2 within 120 s"
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait()
-        log.close()
-    assert proc.returncode == -signal.SIGKILL
+    code = sigkill_in_task_two(args, run, tmp_path, wait_s=120)
+    resume_ckpt = run / "checkpoints" / "resume.pt"
+    assert code == -signal.SIGKILL
     assert load_checkpoint(resume_ckpt, kind="resume")["task_index"] == 1
     assert not (run / "checkpoints" / "task2_room2.pt").exists()
     done = subprocess.run([str(DRAGO), "resume", str(run), "--no-progress"], capture_output=True, text=True,
-                          env=env, cwd=tmp_path, timeout=300, check=False)
+                          env=ONE_THREAD_ENV, cwd=tmp_path, timeout=300, check=False)
     assert done.returncode == 0, done.stderr
     for name in ("train.csv", "eval.csv"):
         assert (run / name).read_bytes() == (reference / name).read_bytes(), name

@@ -10,7 +10,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +24,7 @@ from drago.continual import METHODS
 from drago.continual.naive import Continual, Scratch
 from drago.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from drago.training.resources import keep_freed_memory
-from helpers import QUIET, read_csv
+from helpers import ONE_THREAD_ENV, QUIET, read_csv, sigkill_in_task_two
 
 TASKS = ("room1", "room2", "room3", "room4")
 DRAGO = Path(sys.executable).parent / "drago"
@@ -352,39 +351,15 @@ def test_sigkill_then_resume_finishes_the_sequence(tmp_path):
     run = tmp_path / "killed"
     # Longer tasks with frequent checkpoints leave a wide window inside task 2.
     longer = ["train.steps_per_task=600", "train.checkpoint_freq=100"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    log = (tmp_path / "train.log").open("w")
-    proc = subprocess.Popen([str(DRAGO), "train", "smoke", "--out", str(run), *QUIET, *longer],
-                            stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp_path)
-    resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
-    deadline = time.monotonic() + 300  # a bound on waiting, generous for a loaded machine
-
-    def in_task2_with_checkpoint() -> bool:
-        # resume.pt newer than task 1's checkpoint: a periodic snapshot of task 2 (or later), not task 1's
-        # last one (which exists for a moment next to task1_room1.pt before it is deleted).
-        try:
-            return resume_ckpt.stat().st_mtime_ns > task1.stat().st_mtime_ns
-        except FileNotFoundError:
-            return False
-
-    try:
-        while not in_task2_with_checkpoint():
-            assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
-            assert time.monotonic() < deadline, "no periodic checkpoint in task 2 within 300 s"
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait()
-        log.close()
-    assert proc.returncode == -signal.SIGKILL
+    code = sigkill_in_task_two(["smoke", *QUIET, *longer], run, tmp_path)
+    resume_ckpt = run / "checkpoints" / "resume.pt"
+    assert code == -signal.SIGKILL
     assert not (run / "checkpoints" / "task4_room4.pt").exists()
     assert load_checkpoint(resume_ckpt, kind="resume")["task_index"] >= 1
     assert not json.loads((run / "summary.json").read_text())["complete"]
 
     done = subprocess.run([str(DRAGO), "resume", str(run), "--no-progress"], capture_output=True, text=True,
-                          env=env, cwd=tmp_path, timeout=120)
+                          env=ONE_THREAD_ENV, cwd=tmp_path, timeout=120)
     assert done.returncode == 0, done.stderr
     summary = json.loads((run / "summary.json").read_text())
     assert summary["complete"] is True

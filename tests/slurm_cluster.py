@@ -2,7 +2,7 @@
 
 ``start_slurm_cluster(folder)`` starts a private munged (its own key and socket), slurmctld and slurmd from Debian's
 ``slurm-wlm`` and ``munge`` packages (scripts/setup.sh installs them where it can) with a generated slurm.conf, waits
-until the node is idle, and stops everything again on exit. Nothing outside ``folder`` is written except the munge
+until the node is up, and stops everything again on exit. Nothing outside ``folder`` is written except the munge
 socket's folder (``/tmp/drago-munge-*``, removed on exit): no /etc, /run or /var file is read or changed, so any number
 of sessions, one after the other or at the same time, can each start their own cluster.
 
@@ -395,7 +395,7 @@ def start_slurm_cluster(root: Path, timeout: float = START_TIMEOUT_S) -> Iterato
 
         states: list[str] = []
 
-        def node_idle() -> bool:
+        def node_up() -> bool:
             check_alive()
             try:
                 proc = subprocess.run([programs["sinfo"], "-h", "-o", "%T"], check=False, env=cluster.env,
@@ -408,9 +408,10 @@ def start_slurm_cluster(root: Path, timeout: float = START_TIMEOUT_S) -> Iterato
             if state.rstrip("*~#!%$@^-") in {"drained", "draining", "inval", "fail"}:
                 reason = cluster.run(["sinfo", "-h", "-R", "-o", "%E"], check=False).stdout.strip()
                 raise SlurmUnavailable(f"node went {state} ({reason})\n{cluster.log_tail()}")
-            return state == "idle"
+            # A cluster restarted over its saved state comes back with the jobs it had: its node is up but busy.
+            return state in {"idle", "mixed", "allocated", "completing"}
 
-        wait_for(node_idle, max(5.0, timeout - (time.monotonic() - t0)), "the node to be idle",
+        wait_for(node_up, max(5.0, timeout - (time.monotonic() - t0)), "the node to be up",
                  lambda: f"sinfo states seen: {' -> '.join(states)}\n{cluster.log_tail()}")
         cluster.startup_s = time.monotonic() - t0
     except (TimeoutError, OSError, subprocess.SubprocessError) as e:

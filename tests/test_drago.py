@@ -208,8 +208,9 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
     from drago.continual import drago as drago_module
 
     reference = tmp_path / "ref"
+    # Two rooms: the crash comes in the second, where every piece of DRAGO's state is live.
     args = ["train", "smoke", "--method", "drago", "--no-progress", "train.tensorboard=false",
-            "train.steps_per_task=800", "train.checkpoint_freq=200"]
+            "env.tasks=[room1,room2]", "train.steps_per_task=800", "train.checkpoint_freq=200"]
     assert cli.main([*args, "--out", str(reference)]) == 0
 
     crashed = tmp_path / "crashed"

@@ -260,36 +260,35 @@ def test_smoke_study_runs_to_completion_through_slurm(slurm_env: SlurmCluster, r
     c = slurm_env
     out = tmp_path / "smoke"
     t0 = time.monotonic()
-    proc = drago(*study_argv(out, "--wait", methods=METHODS, seeds=("1-2",)), timeout=600, cwd=tmp_path)
+    proc = drago(*study_argv(out, "--wait", methods=METHODS), timeout=600, cwd=tmp_path)
     print(f"\n{proc.stdout}{proc.stderr}\nstudy through SLURM: {time.monotonic() - t0:.0f} s")
     print("sinfo:\n" + c.run(["sinfo"]).stdout)
     print("squeue -t all:\n" + c.squeue("%.6i %.40j %.10T %.10M %R", all_states=True))
     assert proc.returncode == 0, proc.stderr
     text = proc.stdout
     assert "checked: the nodes see the study folder" in text
-    assert text.count("submitted job ") == 9  # 4 runs, 4 transfers, the report
-    assert "after job" in text and "study complete: 8 jobs run through SLURM, 0 already finished" in text
+    assert text.count("submitted job ") == 5  # 2 runs, 2 transfers, the report
+    assert "after job" in text and "study complete: 4 jobs run through SLURM, 0 already finished" in text
     finished = [line for line in text.splitlines() if line.startswith("[")]
-    assert len(finished) == 8 and all("] done    " in line for line in finished)
+    assert len(finished) == 4 and all("] done    " in line for line in finished)
     states = c.job_states()
     record = jobs_file(out)
     assert all(states[job_id] == "COMPLETED" for job_id in record["jobs"])
     for method in METHODS:
-        for seed in (1, 2):
-            summary = json.loads((out / method / f"seed{seed}" / "summary.json").read_text())
-            assert summary["complete"] is True
-            log = (out / "logs" / f"{method}-seed{seed}.log").read_text()
-            assert f"drago train smoke --method {method} --seed {seed}" in log and "(SLURM job " in log
+        summary = json.loads((out / method / "seed1" / "summary.json").read_text())
+        assert summary["complete"] is True
+        log = (out / "logs" / f"{method}-seed1.log").read_text()
+        assert f"drago train smoke --method {method} --seed 1" in log and "(SLURM job " in log
     for name in ("report.html", "report.md", "transfers.csv", "transfers.md"):
         assert (out / "report" / name).is_file(), name
     # SLURM ran the same commands: the same logs as the local study, byte for byte.
     assert snapshot(out / RUN) == snapshot(reference / RUN)
 
-    status = drago(*study_argv(out, "--status", methods=METHODS, seeds=("1-2",)))
+    status = drago(*study_argv(out, "--status", methods=METHODS))
     print(status.stdout)
-    assert status.returncode == 0 and "8 done, 0 running, 0 queued, 0 failed, 0 to do" in status.stdout
+    assert status.returncode == 0 and "4 done, 0 running, 0 queued, 0 failed, 0 to do" in status.stdout
     # Again: nothing to submit; the report is written here.
-    again = drago(*study_argv(out, methods=METHODS, seeds=("1-2",)), timeout=120)
+    again = drago(*study_argv(out, methods=METHODS), timeout=120)
     assert again.returncode == 0, again.stderr
     assert "submitted job" not in again.stdout and "every job is finished: writing the report here" in again.stdout
     assert set(c.job_states()) == set(states)

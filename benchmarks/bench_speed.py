@@ -49,6 +49,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from drago.agent.agent import Agent
 from drago.agent.buffer import EpisodeReplay
+from drago.agent.speed import resolve_speed
 from drago.config import load_config
 from drago.continual.base import Budget, TaskState, buffer_capacity
 from drago.continual.drago import Drago
@@ -253,20 +254,24 @@ def bench_preset(name: str, args) -> dict:
         overrides.append(f"train.device={args.device}")
     cfg = load_config(name, overrides, method="drago")
     device = torch.device(cfg.train.device)
+    cfg, notes = resolve_speed(cfg, device)  # what a run of this preset would use on this machine
+    for note in notes:
+        print(f"{name}: {note}")
     memory = PeakMemory(device)
     rate = matmul_flops(device)
     memory.start()
     method, task = task_two(cfg, device)
     parts = components(method, task, cfg)
     # FLOPs depend only on shapes: with torch.compile on they are counted on an eager twin.
-    if cfg.agent.compile:
-        eager = load_config(name, [*overrides, "agent.compile=false"], method="drago")
+    if cfg.agent.compile == "true":
+        eager = load_config(name, [*overrides, "agent.compile=false", f"agent.precision={cfg.agent.precision}"],
+                            method="drago")
         twin_parts = components(*task_two(eager, device), eager)
     else:
         twin_parts = parts
 
     result = {"preset": name, "device": str(device), "precision": cfg.agent.precision,
-              "compile": cfg.agent.compile, "mlp_dim": cfg.agent.mlp_dim, "horizon": cfg.agent.horizon,
+              "compile": cfg.agent.compile == "true", "fast_tanh": cfg.agent.fast_tanh, "mlp_dim": cfg.agent.mlp_dim, "horizon": cfg.agent.horizon,
               "batch_size": cfg.agent.batch_size, "planner_samples": cfg.agent.num_samples,
               "planner_iterations": cfg.agent.iterations, "episode_length": cfg.env.episode_length,
               "updates_per_episode": cfg.updates_per_episode, "rehearsal_freq": cfg.method.rehearsal_freq,
@@ -319,7 +324,7 @@ def print_table(rows: list[dict]) -> None:
     for r in rows:
         print(f"\n{r['preset']}: width {r['mlp_dim']}, H {r['horizon']}, batch {r['batch_size']}, "
               f"{r['planner_iterations']}x{r['planner_samples']} planner samples, {r['precision']}"
-              f"{', compiled' if r['compile'] else ''}, {r['device']}; "
+              f"{', compiled' if r['compile'] else ''}{', fast tanh' if r.get('fast_tanh') else ''}, {r['device']}; "
               f"float32 matmul {r['matmul_gflops']:.1f} GFLOP/s"
               + (f" (bfloat16 {r['matmul_gflops_bfloat16']:.1f})" if "matmul_gflops_bfloat16" in r else ""))
         print(f"  {'component':<16}{'ms':>10}{'GFLOP':>9}{'limit ms':>10}{'util':>7}{'mm ms':>10}{'mm %':>6}"

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import drago.study as study  # studies: plan_study, run_study, describe_plan, ...
 import drago.study_slurm as study_slurm  # the SLURM backend of drago study
+from drago.agent.speed import resolve_speed, speed_summary
 from drago.config import Config, ConfigError, available_presets, describe_settings
 from drago.config import load_config as _load_settings
 from drago.continual import ContinualMethod, TaskState, available_methods, check_method, methods
@@ -64,7 +65,8 @@ __all__ = [
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",
     "describe_settings", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
     "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",
-    "run_paper_cases", "run_transfer", "study", "study_slurm", "task_descriptions", "train",
+    "resolve_speed", "run_paper_cases", "run_transfer", "speed_summary", "study", "study_slurm", "task_descriptions",
+    "train",
 ]
 
 

@@ -91,14 +91,17 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from drago.api import default_run_dir, load_config, new_run
+    from drago.api import default_run_dir, load_config, new_run, speed_summary
 
     if args.seed is not None and args.seed < 0:
         raise UsageError(f"--seed must be a non-negative integer, got {args.seed}")
     cfg = load_config(args.preset, args.overrides, method=args.method, seed=args.seed)
     run_dir = args.out or default_run_dir(cfg)
     trainer = new_run(cfg, run_dir, force=args.force, progress=not args.no_progress)
-    trainer.logger.print(f"drago train {cfg.preset} --method {cfg.method.name} --seed {cfg.train.seed} -> {run_dir}")
+    trainer.logger.print(f"drago train {cfg.preset} --method {cfg.method.name} --seed {cfg.train.seed} -> {run_dir} "
+                         f"({speed_summary(trainer.cfg.agent)})")
+    for note in trainer.speed_notes:
+        trainer.logger.print(note)
     # Closing flushes TensorBoard and ends the W&B run (marked failed when an exception is on its way out).
     try:
         with _on_interrupt(f"continue with `drago resume {run_dir}`"):

@@ -91,13 +91,14 @@ class AgentConfig:
     # Seed-phase probabilities of a discrete domain's actions, used when there is one per action (the grid's
     # left, right, forward); other discrete domains, or an empty list, draw uniformly.
     random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)
-    # Speed (docs: Speed and precision). bfloat16: autocast of the networks' hidden layers in updates
-    # and planning; output layers, losses, TD targets and optimizer state stay float32.
-    precision: str = "float32"  # float32 or bfloat16
-    compile: bool = False  # torch.compile the update's losses and the planner's per-step evaluation
+    # Speed (docs: Speed and precision). A run resolves each `auto` on the machine it starts on and writes the
+    # choice into its config.yaml (drago.agent.speed). bfloat16: autocast of the networks' hidden layers in
+    # updates and planning; output layers, losses, TD targets and optimizer state stay float32.
+    precision: str = "auto"  # auto, float32 or bfloat16
+    compile: str = "auto"  # auto, true or false: torch.compile the update's losses and the planner's step
     # The heads' tanh (critics, policy mean) as 2*sigmoid(2x) - 1: within 3e-7 of torch.tanh, faster on
-    # CPUs where torch.tanh is not vectorised (docs: Speed and precision); off keeps runs bit-identical.
-    fast_tanh: bool = False
+    # CPUs where torch.tanh is not vectorised (docs: Speed and precision); false gives torch.tanh's bits.
+    fast_tanh: bool = True
     # -- PETS (agent.kind=pets; docs: Methods, PETS): a probabilistic ensemble and CEM over action sequences --
     pets_members: int = 5  # ensemble size E
     pets_hidden: int = 200  # width of every hidden layer of the ensemble (and of the learned reward)
@@ -239,7 +240,8 @@ class Config:
 
 SECTIONS = ("env", "agent", "train", "method", "transfer")
 ELITE_SELECTIONS = ("sample", "argmax")
-PRECISIONS = ("float32", "bfloat16")
+PRECISIONS = ("auto", "float32", "bfloat16")
+COMPILE_CHOICES = ("auto", "true", "false")
 PRE_ROLLOUT_PLANNING = ("source", "code")
 AGENT_KINDS = ("tdmpc", "pets")
 
@@ -499,6 +501,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "agent.pets_propagation": ("tsinf", "ts1"),
     "agent.pets_reward": ("learned", "known"),
     "agent.precision": PRECISIONS,
+    "agent.compile": COMPILE_CHOICES,
     "method.vae_data": ("combined", "learner"),
     "method.rehearsal_mode": ("separate", "joint"),
     "method.rehearsal_target": ("pre_squash", "post_squash"),
@@ -508,7 +511,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 }
 #: Choice settings where YAML reads a word as a boolean (off, no, false: False; on, yes, true: True): the choice
 #: each boolean stands for.
-BOOLEAN_WORDS: dict[str, tuple[str, str]] = {"train.wandb": ("off", "online")}
+BOOLEAN_WORDS: dict[str, tuple[str, str]] = {"train.wandb": ("off", "online"), "agent.compile": ("false", "true")}
 
 
 def _get(cfg: Config, key: str) -> Any:
@@ -577,10 +580,10 @@ def _check_relations(cfg: Config) -> None:
         if agent.pets_reward == "known" and cfg.env.domain != "minigrid":
             raise ConfigError(f"agent.pets_reward=known needs a reward known as a function of observations, the "
                               f"grid's (env.domain=minigrid); {cfg.env.domain} has none: use agent.pets_reward=learned")
-        for key, value, default in (("precision", agent.precision, "float32"), ("compile", agent.compile, False)):
-            if value != default:
+        for key, value, plain in (("precision", agent.precision, "float32"), ("compile", agent.compile, "false")):
+            if value not in ("auto", plain):
                 raise ConfigError(f"setting 'agent.{key}' applies to TD-MPC; agent.kind=pets runs in float32, "
-                                  f"uncompiled: leave agent.{key} at {str(default).lower()}")
+                                  f"uncompiled: leave agent.{key} at auto or {plain}")
     if agent.num_elites > agent.num_samples:
         raise ConfigError(f"agent.num_elites ({agent.num_elites}) must not exceed agent.num_samples "
                           f"({agent.num_samples})")

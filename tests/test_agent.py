@@ -630,9 +630,9 @@ def test_output_layers_stay_float32_under_bfloat16_autocast():
 def test_precision_setting_is_validated():
     from drago.config import ConfigError, load_config
 
-    assert load_config("smoke").agent.precision == "float32"
+    assert load_config("smoke").agent.precision == "auto"  # a run resolves it (tests/test_speed.py)
     assert load_config("smoke", ["agent.precision=bfloat16"]).agent.precision == "bfloat16"
-    with pytest.raises(ConfigError, match="unknown agent.precision 'float16'; valid choices: float32, bfloat16"):
+    with pytest.raises(ConfigError, match="unknown agent.precision 'float16'; valid choices: auto, float32, bfloat16"):
         load_config("smoke", ["agent.precision=float16"])
 
 
@@ -693,8 +693,8 @@ def test_fast_tanh_matches_tanh_and_its_gradient():
 def test_fast_tanh_reaches_the_heads_and_learns_like_tanh():
     from drago.config import load_config
 
-    assert load_config("smoke").agent.fast_tanh is False  # default: bit-identical to torch.tanh
-    assert load_config("smoke", ["agent.fast_tanh=true"]).agent.fast_tanh is True
+    assert load_config("smoke").agent.fast_tanh is True  # the default; false gives torch.tanh's own bits
+    assert load_config("smoke", ["agent.fast_tanh=false"]).agent.fast_tanh is False
     wm = make_world()
     agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), AgentConfig(mlp_dim=MLP, fast_tanh=True),
                   discrete=False)

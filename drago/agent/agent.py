@@ -7,6 +7,7 @@ world model is fresh or carried over, and DRAGO's learner and reviewer share one
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,7 @@ from drago.agent.planner import (
     plan_discrete,
     terminal_value,
 )
+from drago.agent.speed import resolve_agent_speed
 from drago.config import AgentConfig
 
 
@@ -64,10 +66,15 @@ class Agent:
                  discrete: bool, reviewer: bool = False):
         self.world_model = world_model
         self.world_optimizer = world_optimizer
+        device = next(world_model.parameters()).device
+        if "auto" in (cfg.precision, cfg.compile):
+            # Built outside a run, which resolves both when it starts: the precision a run would choose here,
+            # and eager, because compiling pays back only over a run's many thousand calls.
+            cfg = resolve_agent_speed(replace(cfg, compile="false" if cfg.compile == "auto" else cfg.compile),
+                                      device)[0]
         self.cfg = cfg
         self.discrete = discrete
         self.reviewer = reviewer
-        device = next(world_model.parameters()).device
         self.heads = TaskHeads(world_model.obs_dim, world_model.action_dim, cfg.mlp_dim, discrete,
                                fast_tanh=cfg.fast_tanh).to(device)
         # The policy has its own optimizer: the model loss never reaches it and the policy loss must
@@ -81,7 +88,7 @@ class Agent:
         # Optional torch.compile: the update's loss functions (their backward is compiled with them) and
         # one step of the planner's trajectory evaluation. Optimizer steps stay eager.
         self._model_losses, self._policy_loss, self._evaluator = model_losses, policy_loss, EAGER
-        if cfg.compile:
+        if cfg.compile == "true":
             self._model_losses, self._policy_loss = torch.compile(model_losses), torch.compile(policy_loss)
             self._evaluator = Evaluator(step=torch.compile(imagine_step), terminal=torch.compile(terminal_value))
 

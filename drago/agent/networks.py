@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from drago.config import PRECISIONS, Config
+from drago.config import Config
 from drago.envs import EnvSpec
 
 # The dynamics output is clamped before squashing, as in the official code.
@@ -31,7 +31,8 @@ def autocast(device: torch.device | str, precision: str) -> contextlib.AbstractC
     if precision == "float32":
         return contextlib.nullcontext()
     if precision != "bfloat16":
-        raise ValueError(f"unknown precision '{precision}'; valid: {', '.join(PRECISIONS)}")
+        raise ValueError(f"unknown precision '{precision}'; valid: float32, bfloat16 (a run resolves auto, see "
+                         "drago.agent.speed)")
     return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import torch
 
+from drago.agent.speed import resolve_speed, use_compile_cache
 from drago.config import Config, ConfigError
 from drago.continual import build_method
 from drago.envs import env_spec
@@ -42,11 +43,17 @@ def _prepare_process(cfg: Config) -> None:
     check_tracking(cfg)
     set_threads(cfg.train.threads)
     keep_freed_memory()
+    if cfg.agent.compile == "true":
+        use_compile_cache()
 
 
 def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = True) -> Trainer:
-    """Create ``run_dir`` for ``cfg`` (refusing to overwrite a run unless ``force``) and build its trainer."""
+    """Create ``run_dir`` for ``cfg`` (refusing to overwrite a run unless ``force``) and build its trainer.
+
+    The agent's ``auto`` speed settings are resolved here, for this machine, and written into the run's
+    config.yaml; ``trainer.speed_notes`` says why an ``auto`` chose the slower path."""
     device = resolve_device(cfg.train.device)
+    cfg, speed_notes = resolve_speed(cfg, device)
     _prepare_process(cfg)
     if run_dir.exists() and any(run_dir.iterdir()):
         if not force:
@@ -59,6 +66,7 @@ def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = Tr
     write_run_config(run_dir, cfg)
     trainer = _build(cfg, run_dir, device, progress)
     trainer.logger = _logger(cfg, run_dir, trainer)
+    trainer.speed_notes = speed_notes
     return trainer
 
 

@@ -38,6 +38,8 @@ RESUME_FILE = "resume.pt"
 HELDOUT_FOLDER = "heldout"
 TRANSFER_FOLDER = "transfer"
 WANDB_RUN_FILE = "wandb.json"
+#: Agent settings whose default changed after runs were written without them: the value such a run used.
+LEGACY_AGENT_DEFAULTS = {"precision": "float32", "compile": "false", "fast_tanh": False}
 
 #: Settings that never make two runs "different runs": the thread count follows the machine (a study's
 #: --jobs), and where a run's results are also sent (Weights & Biases) changes none of them; a resumed run
@@ -45,6 +47,10 @@ WANDB_RUN_FILE = "wandb.json"
 SETTINGS_THAT_MAY_DIFFER: tuple[str, ...] = ("train.threads", "train.wandb", "train.wandb_project",
                                              "train.wandb_entity", "train.wandb_group", "train.wandb_tags",
                                              "train.wandb_name")
+
+#: Settings a run resolves for its machine when it starts (drago.agent.speed): ``auto`` wanted agrees with
+#: whatever the run chose.
+RESOLVED_AT_START: tuple[str, ...] = ("agent.precision", "agent.compile")
 
 
 class RunDirError(ValueError):
@@ -118,6 +124,11 @@ def read_run_config(run_dir: str | Path) -> Config:
         raise RunDirError(f"{config_path} is not valid YAML ({str(err).splitlines()[0]})") from None
     if not isinstance(data, dict):
         raise RunDirError(f"{config_path} does not hold a drago config")
+    agent = data.get("agent")
+    if isinstance(agent, dict):
+        # Runs written before these settings existed computed with their values of then, not today's defaults.
+        for key, then in LEGACY_AGENT_DEFAULTS.items():
+            agent.setdefault(key, then)
     return Config.from_dict(data)
 
 
@@ -227,11 +238,13 @@ def run_checkpoints(run_dir: str | Path, error: type[RunDirError] = RunDirError,
 # ---- comparing runs --------------------------------------------------------------------------------
 def config_diffs(existing: Config, wanted: Config, ignore: Sequence[str] = SETTINGS_THAT_MAY_DIFFER) -> list[str]:
     """``key: value there, value here`` for every setting in which two configs differ (values compared
-    after a round trip through a run's ``config.yaml``, so a tuple and the list it is saved as agree)."""
+    after a round trip through a run's ``config.yaml``, so a tuple and the list it is saved as agree; an
+    ``auto`` here agrees with the value a run resolved it to, see :data:`RESOLVED_AT_START`)."""
     there = _flat(Config.from_dict(existing.to_dict()).to_dict())
     here = _flat(Config.from_dict(wanted.to_dict()).to_dict())
     return [f"{key}: {there.get(key)!r} there, {here.get(key)!r} here" for key in dict.fromkeys([*here, *there])
-            if key not in ignore and there.get(key) != here.get(key)]
+            if key not in ignore and there.get(key) != here.get(key)
+            and not (key in RESOLVED_AT_START and here.get(key) == "auto")]
 
 
 def _flat(data: dict[str, Any]) -> dict[str, Any]:

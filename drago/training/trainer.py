@@ -70,6 +70,7 @@ class Trainer:
         self.progress = progress
         self._episode_start = episode_start
         self.task_end_hooks = list(task_end_hooks)
+        self.speed_notes: list[str] = []  # why an `auto` speed setting chose the slower path (drago.agent.speed)
         self.summary_extras = summary_extras
         self._eval_env_cache: tuple[str | None, list] = (None, [])
 

@@ -34,7 +34,7 @@ from drago.report import ReportError, build_report, find_run_dirs
 from drago.training.run import resume
 
 SMOKE = ["--no-progress", "train.tensorboard=false", "train.steps_per_task=200", "train.eval_freq=100"]
-TABLES = ("runs", "returns", "coverage", "metrics", "zero-shot", "zero-shot-metrics")
+TABLES = ("runs", "returns", "coverage", "metrics", "zero-shot", "zero-shot-metrics", "visitation")
 TRANSFER_TABLES = ("transfer-episodes", "transfer-env-steps", "transfer-training")
 CASE = "room1to2-after2"
 
@@ -429,8 +429,8 @@ def test_report_has_a_transfer_section(transfers, tmp_path):
 
     # Figures: the sequence curves, the heatmap and the transfer curves (learner and total env steps).
     figures = re.findall(r"!\[[^]]*\]\(([^)]+)\)", md)
-    assert sorted(figures) == ["curves.png", "heatmap.png", "transfer-curves.png"]
-    assert len(page.images) == 3 and all(src.startswith("data:image/png;base64,") for src in page.images)
+    assert sorted(figures) == ["curves.png", "heatmap.png", "transfer-curves.png", "visitation.png"]  # drago runs: a reviewer
+    assert len(page.images) == 4 and all(src.startswith("data:image/png;base64,") for src in page.images)
     image = png((md_path.parent / "transfer-curves.png").read_bytes())
     assert image.height > 300 and not_blank(image)
     for table in page.tables.values():

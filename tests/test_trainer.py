@@ -69,7 +69,8 @@ def differs(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
 # Outputs of a complete run
 # ---------------------------------------------------------------------------------------------------
 def test_smoke_run_writes_every_output(reference):
-    for name in ("config.yaml", "train.csv", "eval.csv", "timing.csv", "console.log", "summary.json"):
+    for name in ("config.yaml", "train.csv", "eval.csv", "timing.csv", "console.log", "summary.json",
+                 "visitation.csv"):
         assert (reference / name).is_file(), name
     cfg = Config.from_dict(yaml.safe_load((reference / "config.yaml").read_text()))
     # The settings asked for, with the speed settings' `auto` resolved for this machine (tests/test_speed.py).

@@ -525,6 +525,10 @@ class EpisodeReplay:
         """Number of stored episodes."""
         return self._num_episodes
 
+    def stored_states(self) -> torch.Tensor:
+        """s_0..s_{L-1} of every stored episode, (episodes x L, obs_dim), in slot order (not by age once full)."""
+        return self._obs[: self._num_episodes * self.episode_length]
+
     @property
     def is_full(self) -> bool:
         """Whether every episode slot holds data."""

@@ -133,6 +133,11 @@ class ContinualMethod:
         """Extra data collection after each learner episode (DRAGO's reviewer); returns log values."""
         return {}
 
+    def collected_buffers(self, task: TaskState) -> dict[str, EpisodeReplay]:
+        """This task's episodes that :meth:`collect` gathered, by the agent that played them (DRAGO: its
+        reviewer's buffer), for records such as where each agent went; the learner's are ``task.buffer``."""
+        return {}
+
     def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
         """One gradient iteration u: by default a learner update that also trains the world model."""
         batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)

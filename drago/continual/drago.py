@@ -126,6 +126,9 @@ class Drago(ContinualMethod):
         return {"reviewer_episode_reward": float(r.reward.sum()), "old_model_episode_reward": float(r.old_reward.sum()),
                 "learner_model_episode_cost": float(r.cost.sum())}
 
+    def collected_buffers(self, task: TaskState) -> dict[str, EpisodeReplay]:
+        return {"reviewer": self.reviewer_buffer} if self.reviewer is not None else {}
+
     def _intrinsic(self, obs, actions, next_obs):
         m = self.cfg.method
         return intrinsic_reward(self.old_world_model, self.world_model, obs, actions, next_obs,

@@ -26,6 +26,7 @@ from drago.report.tables import (
     returns_table,
     runs_table,
 )
+from drago.report.visitation import VISITATION_PNG, visitation_section
 from drago.report.zero_shot import zero_shot_matrix_of, zero_shot_rows, zero_shot_table
 from drago.report.transfers import relearning_metrics, training_table, transfer_block, transfer_gaps, transfer_tables
 from drago.training.rundir import CONFIG_FILE
@@ -108,6 +109,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
                                "light = well predicted, one colour scale for all panels, walls and blocks "
                                "grey. The stage's task start (○) and goal (★) are marked; a red × is a cell "
                                "with a non-finite prediction.", heatmap, HEATMAP_PNG))
+    sections += visitation_section(groups)
     if transfers:
         cases = sorted({run.case for run in transfers})
         blocks = {run.path: transfer_block(run) for run in transfers}
@@ -137,7 +139,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
     html_path, md_path = out / REPORT_HTML, out / REPORT_MD
     try:
         out.mkdir(parents=True, exist_ok=True)
-        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG):
+        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, VISITATION_PNG):
             (out / figure_file).unlink(missing_ok=True)  # a figure from an earlier report must not linger
         for section in sections:
             if isinstance(section, Figure):

@@ -57,7 +57,8 @@ def _wall_mask() -> np.ndarray:
     return np.array([[not is_traversable((x, y)) for x in range(SIZE)] for y in range(SIZE)])
 
 
-def heatmap_png(panels: Mapping[str, Mapping[int, StageMaps]], dpi: int = 80) -> bytes:
+def heatmap_png(panels: Mapping[str, Mapping[int, StageMaps]], dpi: int = 80, label: str = SCORE_LABEL,
+                empty: str = "no world model", stage_title: str = "after task") -> bytes:
     """The heatmap figure as PNG bytes: one row per method, one column per stage.
 
     Args:
@@ -65,6 +66,9 @@ def heatmap_png(panels: Mapping[str, Mapping[int, StageMaps]], dpi: int = 80) ->
             stage without a model for a method (not reached, or beyond its sequence) is an empty
             panel saying so. Several maps (seeds) in a panel are averaged cell by cell.
         dpi: Resolution of the PNG.
+        label: What the colour scale measures (default: the world models' prediction score).
+        empty: What an empty panel says.
+        stage_title: What a panel's title calls its stage, before the stage's number.
 
     Returns:
         PNG bytes. A cell whose averaged score is not finite (a diverged prediction) is drawn at the
@@ -107,8 +111,8 @@ def heatmap_png(panels: Mapping[str, Mapping[int, StageMaps]], dpi: int = 80) ->
             entry = panels[method].get(stage)
             if entry is None or (method, stage) not in means:
                 ax.set_facecolor("#f4f4f4")
-                ax.set_title(f"after task {stage}", fontsize=9)
-                ax.text(0.5, 0.5, "no world model", ha="center", va="center", transform=ax.transAxes,
+                ax.set_title(f"{stage_title} {stage}", fontsize=9)
+                ax.text(0.5, 0.5, empty, ha="center", va="center", transform=ax.transAxes,
                         fontsize=9, color="#777777")
                 continue
             values = means[(method, stage)]
@@ -123,9 +127,9 @@ def heatmap_png(panels: Mapping[str, Mapping[int, StageMaps]], dpi: int = 80) ->
                 ax.scatter(*task.start, marker="o", s=40, c="white", edgecolors="black", linewidths=1.0)
                 ax.scatter(*task.goal, marker="*", s=110, c="white", edgecolors="black", linewidths=0.8)
             seeds = len(entry.maps)
-            ax.set_title(f"after task {stage}: {entry.task}\n({seeds} seed{'s' if seeds != 1 else ''})",
+            ax.set_title(f"{stage_title} {stage}: {entry.task}\n({seeds} seed{'s' if seeds != 1 else ''})",
                          fontsize=9)
-    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=axes, shrink=0.8, label=SCORE_LABEL)
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=axes, shrink=0.8, label=label)
     handles = [Line2D([], [], marker="o", ls="", mfc="white", mec="black", label="start of the stage's task"),
                Line2D([], [], marker="*", ls="", ms=11, mfc="white", mec="black", label="goal"),
                Line2D([], [], marker="s", ls="", ms=9, mfc=WALL_COLOUR, mec=WALL_COLOUR, label="wall / block")]

@@ -92,7 +92,7 @@ class HeldoutRecorder:
     def __init__(self, cfg: Config, run_dir: Path, device: Any, log: Callable[[str], None]):
         self.cfg, self.run_dir, self.device, self.log = cfg, Path(run_dir), device, log
 
-    def __call__(self, index: int, learner: Any | None, step: int) -> None:
+    def __call__(self, index: int, learner: Any | None, step: int, buffers: Any = None) -> None:
         cfg = self.cfg
         path = heldout_path(self.run_dir, index + 1, cfg.env.tasks[index])
         if learner is None and path.exists():

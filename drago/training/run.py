@@ -21,6 +21,7 @@ from drago.training.resources import keep_freed_memory
 from drago.training.rundir import CONFIG_FILE, RunDirError, config_diffs, is_run_dir, read_run_config, write_run_config
 from drago.training.tracking import check_tracking, wandb_tracker
 from drago.training.trainer import Trainer
+from drago.training.visitation import VisitationRecorder
 from drago.training.transfer import describe, paper_transfer_plan, plan_transfer, transfer_summary
 
 
@@ -106,6 +107,8 @@ def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> 
                       if cfg.transfer.checkpoint is not None else None)
     if HeldoutRecorder.wanted(cfg):
         trainer.task_end_hooks.append(HeldoutRecorder(cfg, run_dir, device, lambda line: trainer.logger.print(line)))
+    if VisitationRecorder.wanted(cfg):
+        trainer.task_end_hooks.append(VisitationRecorder(cfg, run_dir, lambda line: trainer.logger.print(line)))
     return trainer
 
 

@@ -38,6 +38,7 @@ RESUME_FILE = "resume.pt"
 HELDOUT_FOLDER = "heldout"
 TRANSFER_FOLDER = "transfer"
 WANDB_RUN_FILE = "wandb.json"
+VISITATION_FILE = "visitation.csv"  # grid runs: where each agent went (training/visitation.py)
 #: Agent settings whose default changed after runs were written without them: the value such a run used.
 LEGACY_AGENT_DEFAULTS = {"precision": "float32", "compile": "false", "fast_tanh": False}
 

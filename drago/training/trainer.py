@@ -38,10 +38,11 @@ class TrainingDiverged(RuntimeError):
 
 #: Starts an episode at a task step: ``start(env, task_step)`` returns the first observation.
 TaskEpisodeStart = Callable[[Any, int], np.ndarray]
-#: Called when task ``index`` is finished: ``hook(index, learner, step)`` with the task's final learner and
-#: step counter, or ``(index, None, 0)`` for a task finished before this process started (a resumed run),
-#: which lets a hook fill in what an older or crashed run lacks.
-TaskEndHook = Callable[[int, "Agent | None", int], None]
+#: Called when task ``index`` is finished: ``hook(index, learner, step, buffers)`` with the task's final learner,
+#: step counter and replay buffers by agent (``learner``, and what the method collected, e.g. ``reviewer``), or
+#: ``(index, None, 0, {})`` for a task finished before this process started (a resumed run), which lets a
+#: hook fill in what an older or crashed run lacks.
+TaskEndHook = Callable[[int, "Agent | None", int, "dict[str, EpisodeReplay]"], None]
 #: Extra blocks for ``summary.json``, given the summary's finished tasks.
 SummaryExtras = Callable[[list[dict[str, Any]]], dict[str, Any]]
 
@@ -234,8 +235,9 @@ class Trainer:
                 self._save_resume(task, env, time.perf_counter() - started, time.process_time() - cpu_started,
                                   last_eval_env, last_ckpt_env, last_eval)
 
+        buffers = {"learner": task.buffer, **self.method.collected_buffers(task)}
         self.method.end_task(task)
-        self._task_finished(index, learner, task.step)
+        self._task_finished(index, learner, task.step, buffers)
         wall = time.perf_counter() - started
         # Contention-free cost: CPU seconds of all threads, and this process's peak memory during the task.
         cost = {"cpu_time_s": time.process_time() - cpu_started, **memory.read()}
@@ -262,9 +264,10 @@ class Trainer:
         start = self._episode_start
         return lambda env: start(env, step)
 
-    def _task_finished(self, index: int, learner: Agent | None = None, step: int = 0) -> None:
+    def _task_finished(self, index: int, learner: Agent | None = None, step: int = 0,
+                       buffers: dict[str, EpisodeReplay] | None = None) -> None:
         for hook in self.task_end_hooks:
-            hook(index, learner, step)
+            hook(index, learner, step, buffers or {})
 
     # ---- evaluation --------------------------------------------------------------------------
     def _eval_due(self, task: TaskState, env_step: int, last_eval_env: int) -> bool:

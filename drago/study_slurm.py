@@ -1091,12 +1091,13 @@ class SlurmResult:
 
 
 def wait_study(submission: Submission, echo: Callable[[str], None] = print, poll_seconds: float = 2.0,
-               max_poll_seconds: float = 30.0, timeout: float | None = None) -> SlurmResult:
+               max_poll_seconds: float = 10.0, timeout: float | None = None) -> SlurmResult:
     """Follow the submitted jobs until SLURM is done with them; one line per finished job, as the local backend.
 
     A job's end is read from ``squeue -t all`` and its directory: done when its summary says complete, failed
     otherwise (with its log and last error line). Polls every ``poll_seconds``, slowing to ``max_poll_seconds``
-    while nothing changes.
+    while nothing changes: one ``squeue`` every 10 s is light for a controller, and a job's end is seen within
+    10 s, not half a minute later.
 
     Raises:
         StudyError: ``timeout`` seconds passed first.

@@ -14,8 +14,18 @@ import torch
 from helpers import QUIET
 
 
+# The files that take longest, longest first. Under pytest-xdist (``--dist loadfile``) each file goes whole to
+# one worker, in collection order: starting the long ones first lets the short ones fill in at the end,
+# instead of one worker finishing a long file alone while the other waits.
+LONG_FILES = ("test_study_slurm.py", "test_study.py", "test_trainer.py", "test_transfer.py", "test_drago.py",
+              "test_report.py", "test_agent.py")
+
+
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``cuda`` run where torch sees a CUDA GPU and are skipped, with the reason, elsewhere."""
+    """Long files first (see :data:`LONG_FILES`); tests marked ``cuda`` run where torch sees a CUDA GPU and are
+    skipped, with the reason, elsewhere."""
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))  # stable: the rest keep their order
     if torch.cuda.is_available():
         return
     skip = pytest.mark.skip(reason="needs a CUDA GPU (torch.cuda.is_available() is False); "

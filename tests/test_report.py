@@ -234,6 +234,9 @@ def test_report_on_partial_results(runs, report):
     assert table[("continual", "1")]["complete"] == "yes" and table[("continual", "1")]["tasks done"] == "2/2"
     assert table[("continual", "2")]["complete"] == "no" and table[("continual", "2")]["tasks done"] == "1/2"
     assert table[("drago", "1")]["complete"] == "yes" and table[("drago", "1")]["tasks done"] == "1/1"
+    # Env steps over the finished tasks (200 a task here; no reviewer in a first task).
+    assert [(table[key]["learner env steps"], table[key]["env steps"]) for key in (("continual", "1"),
+            ("continual", "2"), ("drago", "1"))] == [("400", "400"), ("200", "200"), ("200", "200")]
 
     returns = rows_by(page.tables["table-returns"], "method", "task")
     assert set(returns) == {("continual", "room1"), ("continual", "room2"), ("drago", "room1")}

@@ -51,3 +51,7 @@ def test_a_drago_run_records_each_agents_visits_per_task(tmp_path):
     assert cells[:5] == ["drago", "2: room2", "reviewer", "1", "200"]
     assert sum(float(c) for c in cells[5:]) == pytest.approx(1.0, abs=0.03)  # five shares rounded to 0.01
     assert "Where the reviewer goes" in html.read_text()
+    # The runs table states what each agent spent: the learner's 400 + 400 env steps, the reviewer's 200 on top.
+    runs = md.read_text().split("## Runs")[1].split("\n## ")[0]
+    row = [c.strip() for c in next(line for line in runs.splitlines() if line.startswith("| drago")).strip("|").split("|")]
+    assert row[5:7] == ["800", "1,000"]

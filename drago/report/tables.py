@@ -48,10 +48,18 @@ def runs_table(groups: dict[str, list[ReportedRun]]) -> Table:
     for label, runs in groups.items():
         for run in runs:
             wall = (run.summary or {}).get("wall_time_s")
+            tasks = run.finished.values()
+            learner = sum(int(t.get("learner_steps", t.get("steps", 0))) for t in tasks) * run.cfg.env.action_repeat
+            total = sum(int(t.get("env_steps", 0)) for t in tasks)
+            cpu = sum(float(t.get("cpu_time_s", 0.0)) for t in tasks)
             rows.append((label, str(run.seed), run.cfg.preset, "yes" if run.complete else "no",
-                         f"{len(run.finished)}/{len(run.planned)}", _wall_time(wall), str(run.path)))
-    return Table("runs", "Runs", "One row per run directory; wall time is the sum over its finished tasks.",
-                 ("method", "seed", "preset", "complete", "tasks done", "wall time", "run directory"), rows)
+                         f"{len(run.finished)}/{len(run.planned)}", f"{learner:,}", f"{total:,}", _wall_time(wall),
+                         _wall_time(cpu) if cpu else "–", str(run.path)))
+    return Table("runs", "Runs", "One row per run directory, summed over its finished tasks: the learner's env "
+                 "steps, all env steps (the learner's and, for DRAGO, its reviewer's), wall time, and CPU time "
+                 "(all threads; unlike wall time, it does not depend on what else the machine was doing).",
+                 ("method", "seed", "preset", "complete", "tasks done", "learner env steps", "env steps",
+                  "wall time", "CPU time", "run directory"), rows)
 
 
 def returns_table(groups: dict[str, list[ReportedRun]], tasks: list[str]) -> Table:

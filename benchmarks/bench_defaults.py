@@ -14,7 +14,6 @@ machine; the figures are medians over ``--rounds``, after ``--warmup`` calls of 
 from __future__ import annotations
 
 import argparse
-import csv
 import platform
 import statistics
 import sys
@@ -29,6 +28,7 @@ from bench_speed import components, task_two  # noqa: E402
 from drago.agent.speed import resolve_speed, speed_summary  # noqa: E402
 from drago.config import load_config  # noqa: E402
 from drago.training.resources import keep_freed_memory  # noqa: E402
+from drago.training.rundir import write_rows_csv  # noqa: E402
 
 PLAIN = ["agent.precision=float32", "agent.compile=false", "agent.fast_tanh=false"]
 TIMED = ("act", "update", "drago_step")
@@ -82,10 +82,7 @@ def main() -> None:
     for r in rows:
         print(f"{r[0]:<14}{r[1]:>6}  {r[2]:<12}{r[4]:>12.2f}{r[5]:>11.2f}{r[6]:>9.2f}x")
     if args.csv:
-        with open(args.csv, "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(header)
-            writer.writerows(rows)
+        write_rows_csv([dict(zip(header, row)) for row in rows], tuple(header), args.csv)
 
 
 if __name__ == "__main__":

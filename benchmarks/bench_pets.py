@@ -18,7 +18,6 @@ reward head).
 from __future__ import annotations
 
 import argparse
-import csv
 import platform
 import statistics
 import time
@@ -31,6 +30,7 @@ from drago.agent.factory import build_agent, build_world_model, build_world_opti
 from drago.config import load_config
 from drago.envs import env_spec, make_env
 from drago.training.episodes import run_episode
+from drago.training.rundir import write_rows_csv
 
 PRESETS = {"tdmpc": ("minigrid-cpu", "agent.mlp_dim"), "pets": ("minigrid-pets-cpu", "agent.pets_hidden")}
 
@@ -110,10 +110,7 @@ def main() -> None:
     for r in rows:
         print(f"{r[0]:<7}{r[1]:>6}{r[2]:>14}{r[3]:>20}{r[4]:>7}{r[5]:>11.2f}{r[6]:>11.2f}")
     if args.csv:
-        with open(args.csv, "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(header)
-            writer.writerows(rows)
+        write_rows_csv([dict(zip(header, row)) for row in rows], tuple(header), args.csv)
 
 
 if __name__ == "__main__":

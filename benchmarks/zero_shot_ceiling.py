@@ -34,7 +34,7 @@ import torch
 
 from drago.envs.fourrooms import optimal_returns
 from drago.envs.tasks import get_grid_task
-from drago.eval.coverage import write_rows_csv
+from drago.training.rundir import write_rows_csv
 from drago.eval.zero_shot import (
     DEFAULT_EPISODES,
     DEFAULT_HORIZON,

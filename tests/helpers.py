@@ -33,8 +33,13 @@ def filled_buffer(device_priorities: bool, obs_dim: int = 3, act_dim: int = 2, h
     return buf
 
 
-#: Subprocess runs use one thread, as the test process does.
-ONE_THREAD_ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+def one_thread_env() -> dict[str, str]:
+    """The environment of a subprocess run: this process's as it is now, with one thread, as the tests use."""
+    return {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+#: :func:`one_thread_env` of the environment the tests started with.
+ONE_THREAD_ENV = one_thread_env()
 
 
 def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: float = 300.0) -> int:
@@ -43,7 +48,8 @@ def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: flo
 
     A periodic snapshot of task 2 is a ``resume.pt`` newer than task 1's checkpoint (task 1's own last
     snapshot exists for a moment next to ``task1_room1.pt`` before it is deleted). ``wait_s`` bounds the wait,
-    generously for a loaded machine.
+    generously for a loaded machine. The child gets this process's environment as it is at the call (a test's
+    monkeypatched variables included), with one thread.
     """
     drago = Path(sys.executable).parent / "drago"
     resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
@@ -56,7 +62,7 @@ def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: flo
 
     with (cwd / "train.log").open("w") as log:
         proc = subprocess.Popen([str(drago), "train", *train_args, "--out", str(run)], stdout=log,
-                                stderr=subprocess.STDOUT, env=ONE_THREAD_ENV, cwd=cwd)
+                                stderr=subprocess.STDOUT, env=one_thread_env(), cwd=cwd)
         deadline = time.monotonic() + wait_s
         try:
             while not in_task2_with_checkpoint():

@@ -13,7 +13,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -24,6 +23,7 @@ from drago.api import load_config, train
 from drago.config import Config, ConfigError
 from drago.continual.naive import Continual
 from drago.training.tracking import default_run_name, last_logged_step
+from helpers import one_thread_env, sigkill_in_task_two
 
 needs_wandb = pytest.mark.skipif(
     importlib.util.find_spec("wandb") is None,
@@ -176,25 +176,11 @@ def test_sigkill_then_resume_continues_the_wandb_run(offline, tmp_path):
     run = tmp_path / "killed"
     longer = ["env.tasks=[room1,room2]", "train.steps_per_task=600", "train.checkpoint_freq=100",
               "train.wandb=offline", "train.tensorboard=false"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     drago = Path(sys.executable).parent / "drago"
-    proc = subprocess.Popen([str(drago), "train", "smoke", "--out", str(run), "--no-progress", *longer],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=tmp_path)
-    task1 = run / "checkpoints" / "task1_room1.pt"
-    deadline = time.monotonic() + 120
-    try:
-        while not task1.exists():  # killed in task 2, after task 1's rows went to W&B
-            assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
-            assert time.monotonic() < deadline, "task 1 did not finish within 120 s"
-            time.sleep(0.05)
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait()
+    # Killed in task 2, after task 1's rows went to W&B.
+    assert sigkill_in_task_two(["smoke", "--no-progress", *longer], run, tmp_path, wait_s=120) == -signal.SIGKILL
     done = subprocess.run([str(drago), "resume", str(run), "--no-progress"], capture_output=True, text=True,
-                          env=env, cwd=tmp_path, timeout=300)
+                          env=one_thread_env(), cwd=tmp_path, timeout=300)
     assert done.returncode == 0, done.stderr
     run_id = json.loads((run / "wandb.json").read_text())["id"]
     first, second = [history(wandb_records(segment)) for segment in segments(run, run_id)]

@@ -15,9 +15,6 @@ room 1 while learning room 4 loses accuracy in room 1.
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from functools import lru_cache
@@ -35,7 +32,7 @@ from drago.envs.fourrooms import (
     traversable_cells,
 )
 from drago.envs.tasks import get_grid_task
-from drago.training.rundir import RunCheckpoint, RunDirError, atomic_write_text
+from drago.training.rundir import RunCheckpoint, RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
 
 __all__ = [
@@ -56,7 +53,6 @@ __all__ = [
     "room_of",
     "run_checkpoints",
     "write_coverage_csv",
-    "write_rows_csv",
 ]
 
 GRID_DOMAIN = "minigrid"
@@ -292,16 +288,6 @@ def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, 
 def write_coverage_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
     """Write coverage rows (columns :data:`CSV_COLUMNS`) to ``path``, replacing it atomically."""
     return write_rows_csv(rows, CSV_COLUMNS, path)
-
-
-def write_rows_csv(rows: list[dict[str, Any]], columns: tuple[str, ...], path: str | Path) -> Path:
-    """Write measurement rows to ``path`` atomically; floats as ``repr`` so the file reads back bit-exactly."""
-    handle = io.StringIO(newline="")
-    writer = csv.DictWriter(handle, fieldnames=list(columns), extrasaction="ignore")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: repr(v) if isinstance(v, float) and math.isfinite(v) else v for k, v in row.items()})
-    return atomic_write_text(path, handle.getvalue())
 
 
 def format_table(rows: list[dict[str, Any]]) -> list[str]:

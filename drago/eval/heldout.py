@@ -28,10 +28,11 @@ import numpy as np
 
 from drago.agent.losses import LOG_EPS
 from drago.config import Config
-from drago.eval.coverage import GRID_DOMAIN, write_rows_csv
+from drago.eval.coverage import GRID_DOMAIN
 from drago.eval.predictor import load_world_model
 from drago.training.heldout_sets import HeldoutSet, load_heldout, record_heldout
-from drago.training.rundir import HELDOUT_FOLDER, RunCheckpoint, RunDirError, heldout_path, run_checkpoints
+from drago.training.rundir import (HELDOUT_FOLDER, RunCheckpoint, RunDirError, heldout_path, run_checkpoints,
+                                  write_rows_csv)
 
 __all__ = ["CSV_COLUMNS", "HELDOUT_FOLDER", "RETENTION_FILE", "HeldoutError", "HeldoutSet", "format_table",
            "heldout_checkpoints", "heldout_path", "load_heldout", "record_heldout",

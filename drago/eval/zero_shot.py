@@ -57,10 +57,10 @@ from drago.envs.fourrooms import (
 )
 from drago.envs.grid_reward import decode_obs, true_reward
 from drago.envs.tasks import GRID_SEQUENCES, GridTask, get_grid_task
-from drago.eval.coverage import grid_transitions, grid_world_models, write_rows_csv
+from drago.eval.coverage import grid_transitions, grid_world_models
 from drago.eval.metrics import continual_metrics
 from drago.seeding import task_seed
-from drago.training.rundir import RunCheckpoint, RunDirError
+from drago.training.rundir import RunCheckpoint, RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
 from drago.training.transfer import PAPER_CASES
 

@@ -19,7 +19,10 @@ definition and every write is atomic: a crash at any moment leaves either the ol
 
 from __future__ import annotations
 
+import csv
+import io
 import json
+import math
 import os
 import tempfile
 from collections.abc import Callable, Sequence
@@ -98,6 +101,16 @@ def atomic_write_text(path: str | Path, text: str, durable: bool = False) -> Pat
 
 
 # ---- config and summary ----------------------------------------------------------------------------
+def write_rows_csv(rows: list[dict[str, Any]], columns: tuple[str, ...], path: str | Path) -> Path:
+    """Write measurement rows to ``path`` atomically; floats as ``repr`` so the file reads back bit-exactly."""
+    handle = io.StringIO(newline="")
+    writer = csv.DictWriter(handle, fieldnames=list(columns), extrasaction="ignore")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: repr(v) if isinstance(v, float) and math.isfinite(v) else v for k, v in row.items()})
+    return atomic_write_text(path, handle.getvalue())
+
+
 def is_run_dir(path: str | Path) -> bool:
     return (Path(path) / CONFIG_FILE).is_file()
 

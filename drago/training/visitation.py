@@ -14,7 +14,6 @@ taken from the cell (the L states of an episode that precede an action).
 from __future__ import annotations
 
 import csv
-import io
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -27,7 +26,7 @@ from drago.config import Config
 from drago.envs import env_spec, make_env
 from drago.envs.fourrooms import SIZE
 from drago.seeding import task_seed
-from drago.training.rundir import VISITATION_FILE, atomic_write_text
+from drago.training.rundir import VISITATION_FILE, write_rows_csv
 
 __all__ = ["AGENTS", "FIELDS", "VisitationRecorder", "read_visitation", "visit_counts"]
 
@@ -87,14 +86,12 @@ class VisitationRecorder:
         steps = int(maps["reviewer" if "reviewer" in maps else "learner"].sum())
         maps["random"] = visit_counts(_random_agent_states(self.cfg, index, steps))
         path = self.run_dir / VISITATION_FILE
-        kept = [row for row in read_visitation(path) if int(row["stage"]) != stage]
-        rows = kept + [{"stage": stage, "task": task, "agent": name, "x": int(x), "y": int(y), "visits": int(m[y, x])}
-                       for name in AGENTS if name in maps for m in [maps[name]] for y, x in zip(*np.nonzero(m))]
-        out = io.StringIO()
-        writer = csv.DictWriter(out, fieldnames=FIELDS, lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(rows)
-        atomic_write_text(path, out.getvalue())
+        rows = [row for row in read_visitation(path) if int(row["stage"]) != stage]  # a redone task replaces its rows
+        for name in (name for name in AGENTS if name in maps):
+            visits = maps[name]
+            rows += [{"stage": stage, "task": task, "agent": name, "x": int(x), "y": int(y), "visits": int(visits[y, x])}
+                     for y, x in zip(*np.nonzero(visits))]
+        write_rows_csv(rows, FIELDS, path)
         counted = ", ".join(f"{name} {int(maps[name].sum())}" for name in AGENTS if name in maps)
         self.log(f"[{task}] visitation ({counted} steps) -> {VISITATION_FILE}")
 

@@ -510,6 +510,9 @@ def _terminate_as_interrupt():
 
 
 def main(argv: list[str] | None = None) -> int:
+    from drago.training.tracking import own_wandb_service
+
+    own_wandb_service()
     with _terminate_as_interrupt():
         return _main(argv)
 

@@ -172,7 +172,22 @@ def test_a_resumed_run_continues_the_same_wandb_run_without_repeating_a_step(off
 @pytest.mark.slow
 def test_sigkill_then_resume_continues_the_wandb_run(offline, tmp_path):
     """A real kill: W&B loses what it had not yet written (it writes its log in blocks), and the resumed process
-    sends every step after the last one the killed process's log holds, so no step is missing or repeated."""
+    sends every step after the last one the killed process's log holds, so no step is missing or repeated.
+
+    The parent holds a W&B service of its own, as a notebook or script that used W&B does: its children inherit
+    the service's address, and a killed child's run would stay open in that service and refuse the resume."""
+    import wandb
+
+    wandb.teardown()  # a service this process already has may have left the environment (drago.cli.main)
+    wandb.setup()
+    assert "WANDB_SERVICE" in os.environ
+    try:
+        _kill_and_resume(tmp_path)
+    finally:
+        wandb.teardown()
+
+
+def _kill_and_resume(tmp_path: Path) -> None:
     run = tmp_path / "killed"
     longer = ["env.tasks=[room1,room2]", "train.steps_per_task=600", "train.checkpoint_freq=100",
               "train.wandb=offline", "train.tensorboard=false"]

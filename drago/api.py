@@ -40,6 +40,7 @@ from drago.eval.coverage import coverage_of_run as coverage
 from drago.eval.coverage import format_table as format_coverage_table
 from drago.eval.coverage import run_checkpoints as coverage_checkpoints
 from drago.eval.heldout import RETENTION_FILE, retention_matrix, write_retention_csv
+from drago.eval.reviewer_pay import StagePay, reviewer_pay_of_run
 from drago.eval.zero_shot import ZERO_SHOT_FILE, ZeroShotError, write_zero_shot_csv, zero_shot_matrix
 from drago.eval.zero_shot import ceiling as zero_shot_ceiling
 from drago.eval.zero_shot import format_table as format_zero_shot_table
@@ -59,7 +60,8 @@ __all__ = [
     "COVERAGE_FILE", "RETENTION_FILE", "NonFiniteCheckpoint", "TrainingDiverged", "coverage_checkpoints",
     "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
     "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
-    "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics",
+    "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
+    "reviewer_pay_of_run",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",

@@ -1,4 +1,5 @@
-"""Where each agent went: per-cell visits of the learner, DRAGO's reviewer and a uniformly random agent."""
+"""Where each agent went (per-cell visits of the learner, DRAGO's reviewer and a uniformly random agent) and what
+DRAGO's reviewer is paid on every transition of the grid."""
 
 from __future__ import annotations
 
@@ -12,8 +13,21 @@ from helpers import QUIET
 from drago import cli
 from drago.envs.fourrooms import is_traversable, observation
 from drago.envs.tasks import GRID_TASKS
+from drago.eval.coverage import grid_coverage
+from drago.eval.predictor import load_world_model
+from drago.eval.reviewer_pay import PAID, pays_a_reviewer, reviewer_pay_of_run
 from drago.report import build_report
+from drago.training.checkpoint import load_task_checkpoint
 from drago.training.visitation import read_visitation, visit_counts
+
+
+@pytest.fixture(scope="module")
+def drago_run(tmp_path_factory):
+    """Two rooms of DRAGO with separate budgets: 400 learner steps a task, 200 reviewer steps in task 2."""
+    out = tmp_path_factory.mktemp("drago") / "run"
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), *QUIET, "env.tasks=[room1,room2]",
+                     "train.learner_steps_per_task=400", "train.reviewer_steps_per_task=200"]) == 0
+    return out
 
 
 def test_visit_counts_decode_cells_as_the_environment_encodes_them():
@@ -24,10 +38,8 @@ def test_visit_counts_decode_cells_as_the_environment_encodes_them():
     assert counts[20, 7] == 1  # indexed [y, x]
 
 
-def test_a_drago_run_records_each_agents_visits_per_task(tmp_path):
-    out = tmp_path / "run"
-    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), *QUIET, "env.tasks=[room1,room2]",
-                     "train.learner_steps_per_task=400", "train.reviewer_steps_per_task=200"]) == 0
+def test_a_drago_run_records_each_agents_visits_per_task(drago_run, tmp_path):
+    out = drago_run
     rows = read_visitation(out / "visitation.csv")
     steps = Counter()
     for row in rows:
@@ -55,3 +67,32 @@ def test_a_drago_run_records_each_agents_visits_per_task(tmp_path):
     runs = md.read_text().split("## Runs")[1].split("\n## ")[0]
     row = [c.strip() for c in next(line for line in runs.splitlines() if line.startswith("| drago")).strip("|").split("|")]
     assert row[5:7] == ["800", "1,000"]
+
+
+def test_the_reviewers_pay_is_the_intrinsic_reward_of_the_old_models_predictions(drago_run, tmp_path):
+    """r_old = sigmoid(4(score - theta)), c = sigmoid(score - theta), r = r_old - 0.5 c (paper §3.2, the official
+    code's form), with score = -log(MSE + eps) of the stage's model as coverage computes it on its own."""
+    checkpoint = drago_run / "checkpoints" / "task1_room1.pt"
+    pays = reviewer_pay_of_run(drago_run)
+    assert [(pay.stage, pay.task, pay.next_task) for pay in pays] == [(1, "room1", "room2")]  # no task after room2
+    pay = pays[0]
+    assert pay.threshold == load_task_checkpoint(checkpoint).data["method"]["threshold"]
+    score = grid_coverage(load_world_model(checkpoint)).score
+    sigmoid = lambda x: 1.0 / (1.0 + np.exp(-x))  # noqa: E731
+    np.testing.assert_allclose(pay.old_term, sigmoid(4.0 * (score - pay.threshold)), atol=1e-4)
+    np.testing.assert_allclose(pay.cost, sigmoid(score - pay.threshold), atol=1e-4)
+    np.testing.assert_allclose(pay.reward, pay.old_term - 0.5 * pay.cost, atol=1e-6)
+    assert pay.rooms["all"]["paid"] == pytest.approx(float((pay.old_term > PAID).mean()))
+
+    html, md = build_report([drago_run], tmp_path / "report")
+    assert (tmp_path / "report" / "reviewer-pay.png").is_file() and "Where the reviewer is paid" in html.read_text()
+    table = md.read_text().split("## What the reviewer is paid")[1].split("\n## ")[0]
+    row = [c.strip() for c in next(line for line in table.splitlines() if line.startswith("| drago")).strip("|").split("|")]
+    assert row[:5] == ["drago", "1: room1", "room2", "1", f"{pay.threshold:.2f}"]
+    assert row[5] == f"{pay.rooms['room1']['paid']:.2f}"  # the old rooms after task 1: room 1
+
+
+def test_only_methods_with_a_reviewers_reward_are_paid():
+    assert pays_a_reviewer("drago") and pays_a_reviewer("drago-no-rehearsal")
+    assert not pays_a_reviewer("continual") and not pays_a_reviewer("drago-no-reviewer")
+    assert not pays_a_reviewer("a-plugin-that-is-not-installed")

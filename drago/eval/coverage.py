@@ -180,7 +180,8 @@ def grid_transitions() -> GridTransitions:
 
 
 @lru_cache(maxsize=1)
-def _row_groups() -> np.ndarray:
+def transition_groups() -> np.ndarray:
+    """The group of :data:`GROUPS` (a room or the corridor) of each row of :func:`grid_transitions`."""
     cells = grid_transitions().cells
     return np.asarray([room_group((x, y)) for x, y in cells])
 
@@ -224,7 +225,7 @@ def grid_coverage(predictor: Predictor) -> CoverageResult:
     correct = ((decoded[:, :2] == truth_cells).all(axis=1) & (decoded[:, 2] == truth_headings))
     mse = ((predicted.astype(np.float64) - data.next_obs.astype(np.float64)) ** 2).mean(axis=1)
     score = -np.log(mse + LOG_EPS)
-    groups = _row_groups()
+    groups = transition_groups()
     rooms: dict[str, dict[str, float | int]] = {}
     for group in GROUPS:
         mask = np.ones(len(groups), dtype=bool) if group == ALL else groups == group

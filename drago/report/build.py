@@ -26,6 +26,7 @@ from drago.report.tables import (
     returns_table,
     runs_table,
 )
+from drago.report.reviewer_pay import REVIEWER_PAY_PNG, reviewer_pay_section
 from drago.report.visitation import VISITATION_PNG, visitation_section
 from drago.report.zero_shot import zero_shot_matrix_of, zero_shot_rows, zero_shot_table
 from drago.report.transfers import relearning_metrics, training_table, transfer_block, transfer_gaps, transfer_tables
@@ -110,6 +111,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
                                "grey. The stage's task start (○) and goal (★) are marked; a red × is a cell "
                                "with a non-finite prediction.", heatmap, HEATMAP_PNG))
     sections += visitation_section(groups)
+    sections += reviewer_pay_section(groups)
     if transfers:
         cases = sorted({run.case for run in transfers})
         blocks = {run.path: transfer_block(run) for run in transfers}
@@ -139,7 +141,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
     html_path, md_path = out / REPORT_HTML, out / REPORT_MD
     try:
         out.mkdir(parents=True, exist_ok=True)
-        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, VISITATION_PNG):
+        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, VISITATION_PNG, REVIEWER_PAY_PNG):
             (out / figure_file).unlink(missing_ok=True)  # a figure from an earlier report must not linger
         for section in sections:
             if isinstance(section, Figure):

@@ -1,0 +1,76 @@
+"""The report's "what the reviewer is paid" section (grid runs of the DRAGO methods that pay a reviewer): per
+method and stage, θ, the share of each earlier task's room where the old-model term pays, and the mean intrinsic
+reward per room, with maps of that reward on the grid (docs: Evaluation, where the reviewer goes)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drago.eval.coverage import ALL, GROUPS, CoverageError, cell_scores, transition_groups
+from drago.eval.reviewer_pay import PAID, StagePay, reviewer_pay_of_run
+from drago.report.content import Figure, Table
+from drago.report.runs import ReportedRun, task_room
+from drago.report.tables import format_summary
+
+__all__ = ["REVIEWER_PAY_PNG", "reviewer_pay_section"]
+
+REVIEWER_PAY_PNG = "reviewer-pay.png"
+ROOMS = tuple(group for group in GROUPS if group != ALL)
+PAY_LABEL = "reviewer's reward r_old − α·c at the task's start\nmean over 4 headings × 3 actions"
+
+
+def _pays(groups: dict[str, list[ReportedRun]]) -> dict[str, list[list[StagePay]]]:
+    found: dict[str, list[list[StagePay]]] = {}
+    for label, runs in groups.items():
+        for run in runs:
+            try:
+                pays = reviewer_pay_of_run(run.path)
+            except CoverageError:
+                continue  # not a grid run, or no task finished: reported elsewhere
+            if pays:
+                found.setdefault(label, []).append(pays)
+    return found
+
+
+def _old_rooms_paid(pay: StagePay, sequence: list[str], groups: np.ndarray) -> float:
+    """Share of the transitions in the rooms of the tasks up to ``pay.stage`` whose old-model term pays."""
+    rooms = {task_room(task) for task in sequence[:pay.stage]} - {None}
+    mask = np.isin(groups, sorted(rooms))
+    return float((pay.old_term[mask] > PAID).mean()) if mask.any() else float("nan")
+
+
+def reviewer_pay_section(groups: dict[str, list[ReportedRun]]) -> list[Table | Figure]:
+    """The table and the maps, where some grid run paid a reviewer; nothing otherwise."""
+    from drago.report.heatmap import StageMaps, heatmap_png
+
+    found = _pays(groups)
+    if not found:
+        return []
+    row_groups = transition_groups()
+    sequences = {label: list(runs[0].cfg.env.tasks) for label, runs in groups.items()}
+    rows = []
+    panels: dict[str, dict[int, StageMaps]] = {}
+    for label, runs in found.items():
+        for stage in sorted({pay.stage for pays in runs for pay in pays}):
+            at_stage = [pay for pays in runs for pay in pays if pay.stage == stage]
+            first = at_stage[0]
+            rows.append((label, f"{stage}: {first.task}", first.next_task, str(len(at_stage)),
+                         format_summary([pay.threshold for pay in at_stage])[0],
+                         format_summary([_old_rooms_paid(pay, sequences[label], row_groups) for pay in at_stage])[0],
+                         *(format_summary([pay.rooms[room]["reward"] for pay in at_stage])[0] for room in ROOMS)))
+            panels.setdefault(label, {})[stage + 1] = StageMaps(first.next_task,
+                                                                [cell_scores(pay.reward) for pay in at_stage])
+    table = Table("reviewer-pay", "What the reviewer is paid",
+                  "The intrinsic reward r = r_old − α·c of every grid transition when the next task begins (the "
+                  "current model is then the old one), from each stage's checkpoint and its θ (paper §3.2). "
+                  f"'old rooms paid': share of the transitions in the rooms of the tasks so far whose old-model "
+                  f"term r_old exceeds {PAID}; then the mean r per room. Mean ± std [95% CI] over seeds.",
+                  ("method", "old model: stage", "paid in task", "seeds", "θ", "old rooms paid",
+                   *(f"mean r {room}" for room in ROOMS)), rows)
+    png = heatmap_png(panels, label=PAY_LABEL, empty="no reviewer", stage_title="start of task")
+    figure = Figure("reviewer-pay-maps", "Where the reviewer is paid",
+                    "The intrinsic reward the reviewer plans for when each task begins (rows: methods; columns: "
+                    "tasks from the second), the mean over each cell's 4 headings × 3 actions, averaged over "
+                    "seeds, one colour scale for all panels. The task's start (○) and goal (★) are marked.",
+                    png, REVIEWER_PAY_PNG)
+    return [table, figure]

@@ -40,6 +40,7 @@ from typing import Any
 
 from drago.config import Config, ConfigError, load_config
 from drago.continual import check_method
+from drago.continual.base import Budget
 from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
 from drago.training.resources import keep_freed_memory_requested
 from drago.training.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
@@ -148,6 +149,7 @@ class StudyPlan:
     transfer_episodes: int
     transfer_eval_every: int
     cases: tuple[tuple[str, int], ...]
+    budget: str = ""  # Budget.describe() of the runs' config
     runs: list[Job] = field(default_factory=list)
     transfers: list[Job] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
@@ -251,7 +253,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     kept = tuple((task, after) for task, after in cases if after <= n_tasks)
     plan = StudyPlan(preset=preset, out=out, methods=methods, seeds=seeds, overrides=overrides,
                      tasks=tuple(base.env.tasks), jobs=jobs, threads=base.train.threads, cores=cores,
-                     transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept)
+                     transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept,
+                     budget=Budget.from_config(base).describe())
     if transfers and not cases:
         plan.notes.append(f"the paper has no transfer cases for domain {base.env.domain}: none planned")
     left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
@@ -357,6 +360,8 @@ def describe_plan(plan: StudyPlan, verbose: bool = False, resources: Sequence[st
              f"{' -> '.join(plan.tasks)}",
              f"  methods:   {', '.join(plan.methods)}; seeds: {', '.join(map(str, plan.seeds))}",
              f"  runs:      {_counts(plan.runs)}"]
+    if plan.budget:
+        lines.append(f"  budget:    {plan.budget}")
     if plan.cases:
         cases = ", ".join(f"{task} after {after}" for task, after in plan.cases)
         lines += [f"  transfers: {_counts(plan.transfers)}; cases {cases}, "

@@ -69,6 +69,7 @@ def test_default_plan_is_the_grid_study(tmp_path, capsys):
     assert "7 methods x 3 seeds = 21 runs of room1 -> room2 -> room3 -> room4" in text
     assert "runs:      21 to start, 0 to resume, 0 finished" in text
     assert "transfers: 84 to start" in text and "room1to3 after 4" in text and "20 learner episodes each" in text
+    assert "budget:    10,000 agent steps a task, learner and reviewer together" in text
     for method in ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer"):
         for seed in (1, 2, 3):
             assert f"{method} seed{seed}" in text
@@ -88,6 +89,12 @@ def test_dry_run_of_a_short_sequence_leaves_out_the_cases_it_cannot_run(tmp_path
     # No transfers asked: none planned; threads follow --jobs when no override sets them.
     bare = plan_study("smoke", ["continual"], [1], out=out, transfers=False, jobs=2, cores=4)
     assert bare.transfers == [] and bare.threads == 2 and "train.threads=2" in bare.runs[0].argv
+
+    # Separate budgets: what every learner gets, what DRAGO's reviewer adds, and the way back to the shared one.
+    separate = plan_study("smoke", ["drago"], [1], out=out, overrides=["train.learner_steps_per_task=400",
+                                                                      "train.reviewer_steps_per_task=200"])
+    assert separate.budget == ("400 learner steps a task for every method, up to 200 more for DRAGO's reviewer; "
+                               "the official code's shared accounting: train.learner_steps_per_task=null")
 
 
 def test_seeds_and_ranges():

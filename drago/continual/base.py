@@ -64,6 +64,15 @@ class Budget:
         # Shared: one reviewer episode per learner episode, so at most half of the task, rounded up.
         return -(-self.shared // 2) if self.shared is not None else self.reviewer
 
+    def describe(self) -> str:
+        """One line for a study's plan: who gets how many agent steps a task, and the setting for the other way."""
+        if self.shared is not None:
+            return (f"{self.shared:,} agent steps a task, learner and reviewer together (the official code's "
+                    "accounting: once DRAGO's reviewer runs, its learner gets half); separate budgets: "
+                    "train.learner_steps_per_task=N")
+        return (f"{self.learner:,} learner steps a task for every method, up to {self.reviewer:,} more for DRAGO's "
+                "reviewer; the official code's shared accounting: train.learner_steps_per_task=null")
+
     def finished(self, task: TaskState) -> bool:
         if self.shared is not None:
             return task.step >= self.shared

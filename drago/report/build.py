@@ -26,6 +26,7 @@ from drago.report.tables import (
     returns_table,
     runs_table,
 )
+from drago.report.paper import paper_tables, paper_training_table
 from drago.report.reviewer_pay import REVIEWER_PAY_PNG, reviewer_pay_section
 from drago.report.visitation import VISITATION_PNG, visitation_section
 from drago.report.zero_shot import zero_shot_matrix_of, zero_shot_rows, zero_shot_table
@@ -74,7 +75,7 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
     tasks = task_order(runs)
     coverage = {run.path: coverage_rows(run, findings) for run in runs}
 
-    sections: list[Section] = [runs_table(groups), returns_table(groups, tasks)]
+    sections: list[Section] = [runs_table(groups), returns_table(groups, tasks), *paper_training_table(groups, tasks)]
     curves = curves_png(groups, tasks, colours)
     if curves is not None:
         sections.append(Figure("curves", "Learning curves", "Evaluation return during each task, as a fraction of "
@@ -116,6 +117,8 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         cases = sorted({run.case for run in transfers})
         blocks = {run.path: transfer_block(run) for run in transfers}
         sections += transfer_tables(tgroups, cases, blocks)
+        sections += paper_tables(tgroups, cases, {str(path): (block or {}).get("few_shot", {}).get("equal_episodes") or {}
+                                                  for path, block in blocks.items()})
         sections.append(training_table(tgroups, cases))
         sections += relearning_metrics(groups, transfers, blocks, findings)
         transfer_curves = transfer_png(tgroups, cases, colours)

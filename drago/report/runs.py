@@ -165,15 +165,19 @@ def _method(run: ReportedRun) -> str:
 
 
 def label_runs(runs: list[ReportedRun]) -> dict[str, list[ReportedRun]]:
-    """Group runs by method, in order of first appearance; a method run under several presets is
-    split by preset, since their budgets differ and averaging them would mean nothing."""
-    presets: dict[str, set[str]] = {}
+    """Group runs by method, in order of first appearance; a method run under several presets or with
+    several agents (``agent.kind``) is split by them, since their budgets and models differ and averaging
+    them would mean nothing."""
+    variants: dict[str, set[tuple[str, str]]] = {}
     for run in runs:
-        presets.setdefault(_method(run), set()).add(run.cfg.preset)
+        variants.setdefault(_method(run), set()).add((run.cfg.preset, run.cfg.agent.kind))
     groups: dict[str, list[ReportedRun]] = {}
     for run in runs:
         method = _method(run)
-        run.label = method if len(presets[method]) == 1 else f"{method} [{run.cfg.preset}]"
+        seen = variants[method]
+        parts = [part for part, varies in ((run.cfg.preset, len({p for p, _ in seen}) > 1),
+                                           (run.cfg.agent.kind, len({k for _, k in seen}) > 1)) if varies]
+        run.label = f"{method} [{', '.join(parts)}]" if parts else method
         groups.setdefault(run.label, []).append(run)
     return groups
 

@@ -1,0 +1,149 @@
+"""The paper's published few-shot numbers beside a report's own (paper §4.4, Table 1; Appendix E).
+
+The report puts every transfer case the paper has a number for beside the runs' score read the paper's way
+(the return after the few-shot learner episodes), and says per case which method leads in the paper and
+here, and whether the leader's 95% CI clears every other method's. Numbers are mean ± std over the paper's
+seeds, as printed; the paper gives no CIs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from drago.envs.tasks import DMC_TRANSFER_TASKS
+from drago.eval.stats import Summary, summarize
+from drago.report.content import Table
+from drago.report.runs import Case, ReportedRun, as_number, case_name
+from drago.report.tables import DIGITS
+
+__all__ = ["PAPER_FEW_SHOT", "PAPER_TRAINING_RETURNS", "leader", "paper_tables", "paper_training_table"]
+
+Cell = tuple[float, float]  # mean, std over the paper's seeds
+
+_TABLE1: dict[str, dict[str, Cell]] = {  # paper Table 1, and the curiosity column of its appendix (cheetah)
+    "jump2run": {"drago": (106.78, 32.01), "curiosity": (88.36, 25.81), "ewc": (54.72, 62.72),
+                 "continual": (93.96, 39.29), "scratch": (26.54, 2.67)},
+    "jump-and-run": {"drago": (248.92, 15.38), "curiosity": (165.35, 67.01), "ewc": (156.98, 99.68),
+                     "continual": (128.58, 100.14), "scratch": (182.77, 28.58)},
+    "jump2back": {"drago": (331.85, 11.05), "curiosity": (133.81, 23.07), "ewc": (29.93, 7.15),
+                  "continual": (73.98, 38.45), "scratch": (45.15, 4.92)},
+    "jump-and-back": {"drago": (147.30, 34.29), "curiosity": (138.77, 45.55), "ewc": (117.92, 1.20),
+                      "continual": (140.82, 28.00), "scratch": (129.75, 20.44)},
+    "walk2run": {"drago": (332.38, 20.07), "ewc": (287.02, 37.80), "continual": (229.14, 33.71),
+                 "scratch": (52.11, 3.41)},
+    "run2back": {"drago": (145.98, 17.96), "ewc": (150.19, 2.77), "continual": (128.56, 9.47),
+                 "scratch": (60.49, 9.40)},
+    "back2run": {"drago": (229.79, 9.77), "ewc": (254.09, 70.29), "continual": (241.39, 42.64),
+                 "scratch": (40.76, 18.34)},
+    "stand2run": {"drago": (265.50, 8.40), "ewc": (177.02, 62.48), "continual": (182.71, 30.74),
+                  "scratch": (64.02, 31.54)},
+}
+
+#: ``(agent kind, test task, stage K) -> {method: (mean, std)}``: the paper's few-shot returns.
+PAPER_FEW_SHOT: dict[tuple[str, str, int], dict[str, Cell]] = {
+    **{("tdmpc", name, DMC_TRANSFER_TASKS[name].stage): cells for name, cells in _TABLE1.items()},
+    # Appendix E: DRAGO-PETS against continual PETS on the grid, dense reward.
+    ("pets", "room1to3", 3): {"drago": (233.21, 21.07), "continual": (150.84, 62.37)},
+    ("pets", "room1to2", 2): {"drago": (101.03, 116.21), "continual": (161.70, 44.31)},
+    ("pets", "room1to3", 4): {"drago": (138.26, 99.05), "continual": (43.04, 111.93)},
+    ("pets", "room3to4", 4): {"drago": (234.65, 41.71), "continual": (147.80, 105.84)},
+}
+
+#: The appendix's final return of each training task ("1M steps", one value per cell): method -> task -> return.
+PAPER_TRAINING_RETURNS: dict[str, dict[str, float]] = {
+    "drago": {"cheetah-run": 652.53, "cheetah-jump": 587.24, "cheetah-run-backwards": 624.09, "walker-run": 708.74,
+              "walker-walk": 954.56, "walker-walk-backwards": 953.8, "walker-stand": 972.46},
+    "continual": {"cheetah-run": 675.31, "cheetah-jump": 646.30, "cheetah-run-backwards": 580.59,
+                  "walker-run": 693.61, "walker-walk": 959.31, "walker-walk-backwards": 956.42, "walker-stand": 982.69},
+}
+
+
+def _paper_key(runs: Sequence[ReportedRun], case: Case) -> tuple[str, str, int]:
+    return (runs[0].cfg.agent.kind, case[0], case[1])
+
+
+def leader(summaries: dict[str, Summary]) -> tuple[str, bool | None]:
+    """The method with the highest mean, and whether its 95% CI lies above every other method's (None when
+    a CI rests on one seed and cannot say)."""
+    kept = {method: s for method, s in summaries.items() if s.n > 0}
+    best = max(kept, key=lambda method: kept[method].mean)
+    if any(s.n < 2 for s in kept.values()):
+        return best, None
+    return best, all(kept[best].ci_low > s.ci_high for method, s in kept.items() if method != best)
+
+
+def _paper_leader(cells: dict[str, Cell], methods: Sequence[str]) -> str:
+    return max(methods, key=lambda method: cells[method][0])
+
+
+def paper_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
+                 few_shot: dict[str, dict[str, float]]) -> list[Table]:
+    """The paper's few-shot numbers beside the transfers' (one row per case and method), and per case the
+    leader in the paper and here, over the methods both have; nothing when no case has a paper number.
+
+    ``few_shot`` maps a transfer directory (as a string) to its score ``{"return": ...}`` at equal learner
+    episodes, the paper's reading.
+    """
+    rows, verdicts = [], []
+    for case in cases:
+        here: dict[str, Summary] = {}
+        cells: dict[str, Cell] = {}
+        for label, runs in tgroups.items():
+            mine = [run for run in runs if run.case == case]
+            paper = PAPER_FEW_SHOT.get(_paper_key(mine, case)) if mine else None
+            method = mine[0].method if mine else None
+            if paper is None or method not in paper:
+                continue
+            here[label] = summarize([as_number(few_shot.get(str(run.path), {}).get("return")) for run in mine])
+            cells[label] = paper[method]
+            mean, std = paper[method]
+            rows.append((case_name(case), label, f"{mean:.2f} ± {std:.2f}", _shown(here[label]), str(here[label].n)))
+        compared = [label for label in here if here[label].n > 0]
+        if len(compared) >= 2:
+            best, separates = leader({label: here[label] for label in compared})
+            verdicts.append((case_name(case), ", ".join(compared), _paper_leader(cells, compared), best,
+                             {True: "yes", False: "no", None: "one seed"}[separates]))
+    if not rows:
+        return []
+    tables = [Table("paper-few-shot", "Transfer beside the paper",
+                    "The paper's few-shot return (paper §4.4, Table 1 and its appendix with curiosity; Appendix E "
+                    "for PETS: mean ± std over its seeds) beside this report's at equal learner episodes, the "
+                    "paper's reading: mean ± std [95% bootstrap CI of the mean] over seeds. The paper's budgets "
+                    "are those of its presets; a CPU preset's are much smaller, so compare the ranking, not the "
+                    "returns.",
+                    ("case", "method", "paper", "here", "seeds"), rows)]
+    if verdicts:
+        tables.append(Table("paper-leaders", "Who leads, in the paper and here",
+                            "Per case, over the methods both the paper and this report have: the method with the "
+                            "highest mean return in the paper and here, and whether the leader's 95% CI here lies "
+                            "above every other method's CI (\"one seed\": some method has a single seed, no CI).",
+                            ("case", "methods", "paper's leader", "leader here", "CI separates"), verdicts))
+    return tables
+
+
+def _shown(s: Summary) -> str:
+    if s.n == 0:
+        return "–"
+    if s.n == 1:
+        return f"{s.mean:.{DIGITS}f}"
+    return f"{s.mean:.{DIGITS}f} ± {s.std:.{DIGITS}f} [{s.ci_low:.{DIGITS}f}, {s.ci_high:.{DIGITS}f}]"
+
+
+def paper_training_table(groups: dict[str, list[ReportedRun]], tasks: list[str]) -> list[Table]:
+    """The appendix's final training returns beside the runs' (TD-MPC runs of the methods it reports)."""
+    rows = []
+    for label, runs in groups.items():
+        if not runs or runs[0].cfg.agent.kind != "tdmpc" or runs[0].method not in PAPER_TRAINING_RETURNS:
+            continue
+        paper = PAPER_TRAINING_RETURNS[runs[0].method]
+        for task in tasks:
+            if task not in paper:
+                continue
+            s = summarize([as_number(run.finished[task].get("final_eval_return")) for run in runs if task in run.finished])
+            rows.append((label, task, f"{paper[task]:.2f}", _shown(s), str(s.n)))
+    if not rows:
+        return []
+    return [Table("paper-training", "Training returns beside the paper",
+                  "The appendix's final return of each training task (one value per cell, after the paper's 1M "
+                  "steps a task) beside this report's final evaluation return: mean ± std [95% CI] over seeds.",
+                  ("method", "task", "paper", "here", "seeds"), rows)]

@@ -1,0 +1,72 @@
+"""The paper's published numbers beside a report's: the right cells, the leader and whether its CI separates."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from drago.api import load_config
+from drago.envs.tasks import DMC_TRANSFER_TASKS
+from drago.eval.stats import Summary
+from drago.report.paper import PAPER_FEW_SHOT, PAPER_TRAINING_RETURNS, leader, paper_tables
+from drago.report.runs import ReportedRun, label_runs
+
+DOCS_DATA = Path(__file__).resolve().parents[1] / "docs" / "data"
+
+
+def transfer(tmp_path: Path, preset: str, method: str, seed: int, task: str, after: int) -> ReportedRun:
+    cfg = load_config(preset, [f"env.tasks=[{task}]", f"transfer.checkpoint={tmp_path}/task{after}.pt",
+                               f"transfer.after={after}"], method=method, seed=seed)
+    return ReportedRun(path=tmp_path / f"{method}-{seed}-{task}-{after}", cfg=cfg, summary=None, eval_rows=[])
+
+
+def summary(mean: float, low: float, high: float, n: int = 3) -> Summary:
+    return Summary(n=n, mean=mean, std=1.0, iqm=mean, ci_low=low, ci_high=high)
+
+
+def test_the_leader_separates_only_when_its_ci_clears_every_other():
+    assert leader({"drago": summary(10, 9, 11), "continual": summary(5, 4, 6)}) == ("drago", True)
+    assert leader({"drago": summary(10, 7, 13), "continual": summary(8, 6, 9)}) == ("drago", False)
+    assert leader({"drago": summary(10, 9, 11), "ewc": summary(12, 12, 12, n=1)}) == ("ewc", None)
+
+
+def test_pets_transfers_beside_the_appendix(tmp_path):
+    returns = {"drago": [230.0, 240.0, 250.0], "continual": [100.0, 150.0, 200.0]}
+    runs = [transfer(tmp_path, "minigrid-pets-cpu", method, seed, "room1to3", 3)
+            for method in returns for seed in (1, 2, 3)]
+    few_shot = {str(run.path): {"return": returns[run.method][run.seed - 1]} for run in runs}
+    tables = paper_tables(label_runs(runs), [("room1to3", 3)], few_shot)
+    beside, leaders = (table.rows for table in tables)
+    drago = next(row for row in beside if row[1] == "drago")
+    assert drago[:3] == ("room1to3 after 3", "drago", "233.21 ± 21.07") and drago[4] == "3"
+    assert drago[3].startswith("240.00 ± 10.00 [")
+    assert leaders == [("room1to3 after 3", "drago, continual", "drago", "drago", "yes")]
+
+
+def test_cases_without_a_paper_number_get_no_table(tmp_path):
+    # The paper reports grid transfers of TD-MPC as curves only, and PETS transfers for these four cases only.
+    runs = [transfer(tmp_path, "smoke", "drago", 1, "room1to2", 2),
+            transfer(tmp_path, "minigrid-pets-cpu", "scratch", 1, "room1to3", 3)]
+    assert paper_tables(label_runs(runs), [("room1to2", 2), ("room1to3", 3)], {}) == []
+
+
+def test_a_method_with_two_agents_is_reported_as_two(tmp_path):
+    runs = [transfer(tmp_path, "minigrid-pets-cpu", "drago", 1, "room1to3", 3),
+            transfer(tmp_path, "minigrid-pets-cpu", "drago", 2, "room1to3", 3)]
+    runs[1].cfg.agent.kind = "tdmpc"
+    assert set(label_runs(runs)) == {"drago [pets]", "drago [tdmpc]"}
+
+
+def test_the_docs_tables_hold_the_same_numbers():
+    with (DOCS_DATA / "paper_table1.csv").open(newline="") as handle:
+        for row in csv.DictReader(handle):
+            name = next(t.name for t in DMC_TRANSFER_TASKS.values() if t.paper_name.lower() == row["task"])
+            cells = PAPER_FEW_SHOT[("tdmpc", name, DMC_TRANSFER_TASKS[name].stage)]
+            for method in ("drago", "ewc", "continual", "scratch"):
+                assert cells[method] == pytest.approx((float(row[f"{method}_mean"]), float(row[f"{method}_std"])))
+    with (DOCS_DATA / "paper_training_returns.csv").open(newline="") as handle:
+        rows = {row["method"]: row for row in csv.DictReader(handle)}
+    for method, label in (("drago", "DRAGO"), ("continual", "Continual TDMPC")):
+        assert {task: float(rows[label][task]) for task in PAPER_TRAINING_RETURNS[method]} == PAPER_TRAINING_RETURNS[method]

@@ -19,6 +19,8 @@ DOCS_DATA = Path(__file__).resolve().parents[1] / "docs" / "data"
 def transfer(tmp_path: Path, preset: str, method: str, seed: int, task: str, after: int) -> ReportedRun:
     cfg = load_config(preset, [f"env.tasks=[{task}]", f"transfer.checkpoint={tmp_path}/task{after}.pt",
                                f"transfer.after={after}"], method=method, seed=seed)
+    if cfg.transfer.reward is not None:  # as `drago transfer` writes it into the transfer's config
+        cfg.env.dense_reward = cfg.transfer.reward == "dense"
     return ReportedRun(path=tmp_path / f"{method}-{seed}-{task}-{after}", cfg=cfg, summary=None, eval_rows=[])
 
 
@@ -37,19 +39,29 @@ def test_pets_transfers_beside_the_appendix(tmp_path):
     runs = [transfer(tmp_path, "minigrid-pets-cpu", method, seed, "room1to3", 3)
             for method in returns for seed in (1, 2, 3)]
     few_shot = {str(run.path): {"return": returns[run.method][run.seed - 1]} for run in runs}
-    tables = paper_tables(label_runs(runs), [("room1to3", 3)], few_shot)
+    cases = sorted({run.case for run in runs})
+    assert cases == [("room1to3 (dense)", 3)]  # the appendix's reward, not the test task's own (sparse)
+    tables = paper_tables(label_runs(runs), cases, few_shot)
     beside, leaders = (table.rows for table in tables)
     drago = next(row for row in beside if row[1] == "drago")
-    assert drago[:3] == ("room1to3 after 3", "drago", "233.21 ± 21.07") and drago[4] == "3"
+    assert drago[:3] == ("room1to3 (dense) after 3", "drago", "233.21 ± 21.07") and drago[4] == "3"
     assert drago[3].startswith("240.00 ± 10.00 [")
-    assert leaders == [("room1to3 after 3", "drago, continual", "drago", "drago", "yes")]
+    assert leaders == [("room1to3 (dense) after 3", "drago, continual", "drago", "drago", "yes")]
 
 
 def test_cases_without_a_paper_number_get_no_table(tmp_path):
-    # The paper reports grid transfers of TD-MPC as curves only, and PETS transfers for these four cases only.
+    # The paper reports grid transfers of TD-MPC as curves only, and dense PETS transfers of two methods only.
     runs = [transfer(tmp_path, "smoke", "drago", 1, "room1to2", 2),
             transfer(tmp_path, "minigrid-pets-cpu", "scratch", 1, "room1to3", 3)]
-    assert paper_tables(label_runs(runs), [("room1to2", 2), ("room1to3", 3)], {}) == []
+    assert paper_tables(label_runs(runs), sorted({run.case for run in runs}), {}) == []
+
+
+def test_a_transfer_with_the_other_reward_is_a_case_of_its_own(tmp_path):
+    sparse = transfer(tmp_path, "smoke", "drago", 1, "room1to2", 2)
+    dense = transfer(tmp_path, "smoke", "drago", 1, "room1to2", 2)
+    dense.cfg.env.dense_reward = True
+    relearn = transfer(tmp_path, "smoke", "drago", 1, "room1", 2)  # a training room: dense is its own reward
+    assert (sparse.case, dense.case, relearn.case) == (("room1to2", 2), ("room1to2 (dense)", 2), ("room1", 2))
 
 
 def test_a_method_with_two_agents_is_reported_as_two(tmp_path):

@@ -39,14 +39,14 @@ _TABLE1: dict[str, dict[str, Cell]] = {  # paper Table 1, and the curiosity colu
                   "scratch": (64.02, 31.54)},
 }
 
-#: ``(agent kind, test task, stage K) -> {method: (mean, std)}``: the paper's few-shot returns.
+#: ``(agent kind, case as the report names it, stage K) -> {method: (mean, std)}``: the paper's few-shot returns.
 PAPER_FEW_SHOT: dict[tuple[str, str, int], dict[str, Cell]] = {
     **{("tdmpc", name, DMC_TRANSFER_TASKS[name].stage): cells for name, cells in _TABLE1.items()},
-    # Appendix E: DRAGO-PETS against continual PETS on the grid, dense reward.
-    ("pets", "room1to3", 3): {"drago": (233.21, 21.07), "continual": (150.84, 62.37)},
-    ("pets", "room1to2", 2): {"drago": (101.03, 116.21), "continual": (161.70, 44.31)},
-    ("pets", "room1to3", 4): {"drago": (138.26, 99.05), "continual": (43.04, 111.93)},
-    ("pets", "room3to4", 4): {"drago": (234.65, 41.71), "continual": (147.80, 105.84)},
+    # Appendix E: DRAGO-PETS against continual PETS on the grid, dense reward (the test tasks' own is sparse).
+    ("pets", "room1to3 (dense)", 3): {"drago": (233.21, 21.07), "continual": (150.84, 62.37)},
+    ("pets", "room1to2 (dense)", 2): {"drago": (101.03, 116.21), "continual": (161.70, 44.31)},
+    ("pets", "room1to3 (dense)", 4): {"drago": (138.26, 99.05), "continual": (43.04, 111.93)},
+    ("pets", "room3to4 (dense)", 4): {"drago": (234.65, 41.71), "continual": (147.80, 105.84)},
 }
 
 #: The appendix's final return of each training task ("1M steps", one value per cell): method -> task -> return.

@@ -113,8 +113,15 @@ class ReportedRun:
 
     @property
     def case(self) -> tuple[str, int]:
-        """A transfer's test case: (test task, as the catalogue names it, stage K)."""
-        return self.cfg.transfer.case or self.cfg.env.tasks[0], int(self.cfg.transfer.after or 0)
+        """A transfer's test case: (test task, as the catalogue names it, stage K). A grid transfer that ran
+        the other reward than its task's own is a case of its own, e.g. ``("room1to2 (dense)", 2)``: its
+        returns are on another scale and must not be averaged with the task's own."""
+        task = self.cfg.transfer.case or self.cfg.env.tasks[0]
+        own = GRID_TASKS.get(task)
+        dense = self.cfg.env.dense_reward
+        if own is not None and dense is not None and dense != own.dense:
+            task = f"{task} ({'dense' if dense else 'sparse'})"
+        return task, int(self.cfg.transfer.after or 0)
 
 
 def _read_eval(path: Path, required: Sequence[str] = EVAL_COLUMNS) -> list[dict[str, str]]:

@@ -335,8 +335,8 @@ def _add_study_parser(sub) -> None:
     study = sub.add_parser(
         "study", help="the grid study in one command: methods x seeds, their transfer cases, one report",
         usage="drago study [PRESET] [--methods M ...] [--seeds S ...] [--out DIR] [--jobs N] "
-              "[--transfer-episodes N] [--transfer-eval-every N] [--no-transfer] [--dry-run | --status | "
-              "--report-only] [--backend {local,slurm}] [--wait] [SLURM options] [key=value ...]",
+              "[--transfer-episodes N] [--transfer-eval-every N] [--transfer-reward R] [--no-transfer] "
+              "[--dry-run | --status | --report-only] [--backend {local,slurm}] [--wait] [SLURM options] [key=value ...]",
         description="Runs every method x seed on the preset's sequence into OUT/METHOD/seedS, the paper's "
                     "transfer cases of each run (as `drago transfer --paper-cases`), then `drago report` into "
                     "OUT/report. Finished work is skipped and interrupted work resumed, so after any crash "
@@ -358,6 +358,9 @@ def _add_study_parser(sub) -> None:
     study.add_argument("--transfer-eval-every", type=int, default=1, metavar="N",
                        help="evaluate each transfer after every N learner episodes (default 1; DeepMind Control "
                             "evaluations are costly, 5 still reads both few-shot scores)")
+    study.add_argument("--transfer-reward", choices=("dense", "sparse"), default=None,
+                       help="reward of the transfer cases (default: the run's transfer.reward, else the test task's "
+                            "own, sparse on the grid); another one gets directories of its own, TASK-REWARD-afterK")
     study.add_argument("--no-transfer", action="store_true", help="sequence runs and report only")
     study.add_argument("--dry-run", action="store_true",
                        help="print the plan (with --backend slurm: the sbatch options of every job), run nothing")
@@ -440,7 +443,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
     plan = plan_study(preset, methods or DEFAULT_METHODS, parse_seeds(seeds) if seeds else DEFAULT_SEEDS, out=out,
                       overrides=overrides, jobs=jobs, transfers=not args.no_transfer,
                       transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes,
-                      transfer_eval_every=args.transfer_eval_every, cores=cores, check_settings=not args.status)
+                      transfer_eval_every=args.transfer_eval_every, cores=cores, check_settings=not args.status,
+                      transfer_reward=args.transfer_reward)
     echo = lambda line: print(line, flush=True)  # noqa: E731
     if args.status:
         for line in study_slurm.status_lines(plan):
@@ -510,9 +514,11 @@ def _terminate_as_interrupt():
 
 
 def main(argv: list[str] | None = None) -> int:
-    from drago.training.tracking import own_wandb_service
-
-    own_wandb_service()
+    # A drago command starts a Weights & Biases service of its own. W&B hands its service's address to child
+    # processes in WANDB_SERVICE; were a run (a study's job, a resume after a crash) to use its parent's (a
+    # notebook or script that used W&B), a run killed with SIGKILL would stay open in that service, which then
+    # refuses the resumed process the same run id ("run ID ... is in use").
+    os.environ.pop("WANDB_SERVICE", None)
     with _terminate_as_interrupt():
         return _main(argv)
 

@@ -44,7 +44,14 @@ from drago.continual.base import Budget
 from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
 from drago.training.resources import keep_freed_memory_requested
 from drago.training.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
-from drago.training.transfer import DEFAULT_EPISODES, PAPER_CASES, default_transfer_dir, few_shot_schedule, plan_transfer
+from drago.training.transfer import (
+    DEFAULT_EPISODES,
+    PAPER_CASES,
+    default_transfer_dir,
+    few_shot_schedule,
+    plan_transfer,
+    reward_variant,
+)
 
 __all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
            "default_study_dir", "describe_plan", "directory_state", "parse_seeds", "plan_study", "run_study",
@@ -150,6 +157,7 @@ class StudyPlan:
     transfer_eval_every: int
     cases: tuple[tuple[str, int], ...]
     budget: str = ""  # Budget.describe() of the runs' config
+    transfer_reward: str | None = None  # dense or sparse: the transfers' reward, if not their runs' default
     runs: list[Job] = field(default_factory=list)
     transfers: list[Job] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
@@ -206,7 +214,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                seeds: Sequence[int] = DEFAULT_SEEDS, out: str | Path | None = None,
                overrides: Sequence[str] = (), jobs: int = 1, transfers: bool = True,
                transfer_episodes: int = DEFAULT_EPISODES, transfer_eval_every: int = 1,
-               cores: int | None = None, check_settings: bool = True) -> StudyPlan:
+               cores: int | None = None, check_settings: bool = True,
+               transfer_reward: str | None = None) -> StudyPlan:
     """Work out what a study still has to do, from its directories.
 
     Args:
@@ -220,6 +229,9 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         transfers: Plan the paper's transfer cases of every run.
         transfer_episodes: Learner episodes of each transfer case.
         transfer_eval_every: Evaluate each transfer after every this many learner episodes.
+        transfer_reward: ``dense`` or ``sparse`` for the transfers' reward (None: each run's default, its
+            ``transfer.reward`` or the test task's own); a reward other than that default gets directories of
+            its own (``TASK-REWARD-afterK``), so a study can hold both.
         cores: CPU cores to share (default: those this process may use).
         check_settings: Refuse directories holding runs with other settings (off for ``--status``, which
             only reads what is there).
@@ -238,6 +250,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         raise StudyError(f"seeds must be non-negative integers, got {' '.join(map(str, seeds)) or 'none'}")
     if jobs < 1:
         raise StudyError(f"--jobs must be a positive integer, got {jobs}")
+    if transfer_reward not in (None, "dense", "sparse"):
+        raise StudyError(f"--transfer-reward must be dense or sparse, got {transfer_reward}")
     try:  # the check `drago transfer` makes, at plan time rather than when the first transfer starts
         few_shot_schedule(transfer_episodes, eval_every=transfer_eval_every, flag="--transfer-")
     except ConfigError as err:
@@ -254,7 +268,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     plan = StudyPlan(preset=preset, out=out, methods=methods, seeds=seeds, overrides=overrides,
                      tasks=tuple(base.env.tasks), jobs=jobs, threads=base.train.threads, cores=cores,
                      transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept,
-                     budget=Budget.from_config(base).describe())
+                     budget=Budget.from_config(base).describe(), transfer_reward=transfer_reward)
     if transfers and not cases:
         plan.notes.append(f"the paper has no transfer cases for domain {base.env.domain}: none planned")
     left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
@@ -279,8 +293,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                       source_cfg.train.threads)
             plan.runs.append(run)
             for task, after in kept:
-                plan.transfers.append(_transfer_job(run, task, after, transfer_episodes, transfer_eval_every, logs,
-                                                    check_settings))
+                plan.transfers.append(_transfer_job(run, source_cfg, task, after, plan, logs, check_settings))
     resumed = sorted({j.threads for j in plan.runs if j.state == RESUME and j.threads != plan.threads})
     if resumed:
         plan.notes.append(f"interrupted runs keep the train.threads they started with "
@@ -288,20 +301,30 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     return plan
 
 
-def _transfer_job(run: Job, task: str, after: int, episodes: int, eval_every: int, logs: Path,
+def transfer_argv(run_dir: Path, task: str, after: int, plan: StudyPlan) -> list[str]:
+    """The ``drago transfer`` command of one case of the study."""
+    reward = ["--reward", plan.transfer_reward] if plan.transfer_reward else []
+    return ["transfer", str(run_dir), "--task", task, "--after", str(after), "--episodes", str(plan.transfer_episodes),
+            "--eval-every", str(plan.transfer_eval_every), *reward, "--no-progress"]
+
+
+def _transfer_job(run: Job, source: Config, task: str, after: int, plan: StudyPlan, logs: Path,
                   check: bool = True) -> Job:
-    case_dir = default_transfer_dir(run.directory, task, after)
+    dense = None if plan.transfer_reward is None else plan.transfer_reward == "dense"
+    variant = reward_variant(source, task, dense)
+    case_dir = default_transfer_dir(run.directory, task, after, variant)
+    name = f"{task}-{variant}-after{after}" if variant else f"{task}-after{after}"
 
     def wanted() -> Config:
-        # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N` would write.
-        return plan_transfer(run.directory, task, after, None, episodes=episodes, eval_every=eval_every)[0]
+        # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N ...` would write.
+        return plan_transfer(run.directory, task, after, None, episodes=plan.transfer_episodes,
+                             eval_every=plan.transfer_eval_every, dense_reward=dense)[0]
 
     state, _ = _state(case_dir, wanted, "transfer", check)
-    argv = {START: ["transfer", str(run.directory), "--task", task, "--after", str(after), "--episodes", str(episodes),
-                    "--eval-every", str(eval_every), "--no-progress"],
+    argv = {START: transfer_argv(run.directory, task, after, plan),
             RESUME: ["resume", str(case_dir), "--no-progress"], DONE: []}[state]
-    return Job(f"{run.label} {task}-after{after}", "transfer", run.method, run.seed, case_dir, state, argv,
-               logs / f"{run.method}-seed{run.seed}-{task}-after{after}.log", run.threads,
+    return Job(f"{run.label} {name}", "transfer", run.method, run.seed, case_dir, state, argv,
+               logs / f"{run.method}-seed{run.seed}-{name}.log", run.threads,
                source=run if run.state != DONE else None, case=(task, after))
 
 
@@ -365,7 +388,8 @@ def describe_plan(plan: StudyPlan, verbose: bool = False, resources: Sequence[st
     if plan.cases:
         cases = ", ".join(f"{task} after {after}" for task, after in plan.cases)
         lines += [f"  transfers: {_counts(plan.transfers)}; cases {cases}, "
-                  f"{plan.transfer_episodes} learner episode{'s' * (plan.transfer_episodes != 1)} each, "
+                  f"{plan.transfer_episodes} learner episode{'s' * (plan.transfer_episodes != 1)} each"
+                  f"{f' with {plan.transfer_reward} reward' if plan.transfer_reward else ''}, "
                   f"evaluated after every {'' if plan.transfer_eval_every == 1 else f'{plan.transfer_eval_every} '}"
                   f"episode{'s' * (plan.transfer_eval_every != 1)}"]
     if resources is None:

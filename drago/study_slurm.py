@@ -49,7 +49,7 @@ from typing import Any
 
 from drago.study import (DONE, LOCK_FILE, LOG_FOLDER, PARENT_ENV, RESUME, START, Job, StudyError, StudyPlan,
                          directory_state, format_duration, job_outcome, job_wall_time, study_lock, summary_line,
-                         write_report)
+                         transfer_argv, write_report)
 from drago.training.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
 
 __all__ = ["SlurmOptions", "SlurmResult", "StudyJob", "Submission", "active_job_ids", "describe_resources",
@@ -623,9 +623,7 @@ def _start_argv(job: Job, plan: StudyPlan) -> list[str]:
         return ["train", plan.preset, "--method", job.method, "--seed", str(job.seed), "--out", str(job.directory),
                 "--no-progress", *plan.overrides]
     task, after = job.case or ("", 0)
-    run_dir = job.directory.parent.parent
-    return ["transfer", str(run_dir), "--task", task, "--after", str(after), "--episodes", str(plan.transfer_episodes),
-            "--eval-every", str(plan.transfer_eval_every), "--no-progress"]
+    return transfer_argv(job.directory.parent.parent, task, after, plan)
 
 
 def report_argv(plan: StudyPlan) -> list[str]:
@@ -633,6 +631,8 @@ def report_argv(plan: StudyPlan) -> list[str]:
     argv = ["study", plan.preset, "--methods", *plan.methods, "--seeds", *map(str, plan.seeds), "--out",
             str(plan.out), "--transfer-episodes", str(plan.transfer_episodes), "--transfer-eval-every",
             str(plan.transfer_eval_every)]
+    if plan.transfer_reward:
+        argv += ["--transfer-reward", plan.transfer_reward]
     if not plan.cases:
         argv.append("--no-transfer")
     return [*argv, "--report-only", *plan.overrides]

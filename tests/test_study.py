@@ -90,6 +90,14 @@ def test_dry_run_of_a_short_sequence_leaves_out_the_cases_it_cannot_run(tmp_path
     bare = plan_study("smoke", ["continual"], [1], out=out, transfers=False, jobs=2, cores=4)
     assert bare.transfers == [] and bare.threads == 2 and "train.threads=2" in bare.runs[0].argv
 
+    # Dense transfers beside the task's own sparse ones: directories, logs and commands of their own.
+    dense = plan_study("smoke", ["continual"], [1], out=out, transfer_reward="dense", transfer_episodes=50)
+    job = next(j for j in dense.transfers if j.case == ("room1to2", 2))
+    assert job.directory == out / "continual" / "seed1" / "transfer" / "room1to2-dense-after2"
+    assert job.log.name == "continual-seed1-room1to2-dense-after2.log"
+    assert job.argv[job.argv.index("--reward") + 1] == "dense" and "50" in job.argv
+    assert "50 learner episodes each with dense reward" in describe_plan(dense)[4]
+
     # Separate budgets: what every learner gets, what DRAGO's reviewer adds, and the way back to the shared one.
     separate = plan_study("smoke", ["drago"], [1], out=out, overrides=["train.learner_steps_per_task=400",
                                                                       "train.reviewer_steps_per_task=200"])

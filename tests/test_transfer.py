@@ -21,7 +21,8 @@ from drago.continual import METHODS
 from drago.continual.drago import Drago
 from drago.envs import task_optimum
 from drago.training.checkpoint import load_checkpoint
-from drago.training.transfer import PAPER_CASES
+from drago.training.rundir import read_run_config
+from drago.training.transfer import PAPER_CASES, reward_variant
 from helpers import QUIET, read_csv
 
 TWO_TASKS = "env.tasks=[room1,room2]"
@@ -114,6 +115,18 @@ def test_reward_can_be_chosen(sources, tmp_path):
                     "--out", str(out)) == 0
     assert json.loads((out / "summary.json").read_text())["transfer"]["reward"] == "dense"
     assert float(read_csv(out / "eval.csv")[0]["optimal_return"]) == pytest.approx(266.5, abs=0.05)
+
+
+def test_a_transfer_with_another_reward_gets_a_directory_of_its_own(smoke_runs):
+    source = smoke_runs("continual", TWO_TASKS)
+    assert transfer(source, "--task", "room1to2", "--after", "1", "--episodes", "1") == 0
+    assert transfer(source, "--task", "room1to2", "--after", "1", "--episodes", "1", "--reward", "dense") == 0
+    own, dense = source / "transfer" / "room1to2-after1", source / "transfer" / "room1to2-dense-after1"
+    assert [json.loads((d / "summary.json").read_text())["transfer"]["reward"] for d in (own, dense)] == ["sparse", "dense"]
+    cfg = read_run_config(source)
+    # Asking for the task's own reward is no variant; a training room's own reward is dense.
+    assert reward_variant(cfg, "room1to2", False) is None and reward_variant(cfg, "room1", True) is None
+    assert reward_variant(cfg, "room1", False) == "sparse" and reward_variant(cfg, "room1to2", None) is None
 
 
 @pytest.mark.parametrize("case", ["continual", "drago-learner-only"])

@@ -54,17 +54,6 @@ def default_run_name(cfg: Config) -> str:
     return name
 
 
-def own_wandb_service() -> None:
-    """Make this process start a W&B service of its own instead of using the one its parent left in the environment.
-
-    W&B hands its service's address to child processes through ``WANDB_SERVICE``. A drago command is a process
-    of its own (a study's job, a resume after a crash): were it to use its parent's service (a notebook or script
-    that used W&B), a run killed with SIGKILL would stay open in that service, which then refuses the resumed
-    process the same run id ("run ID ... is in use"). Call it at process start, before wandb is imported.
-    """
-    os.environ.pop("WANDB_SERVICE", None)
-
-
 def wandb_tracker(cfg: Config, run_dir: Path, say: Callable[[str], None]) -> WandbTracker | None:
     """The run's W&B sink, or None when ``train.wandb`` is off (then nothing imports wandb)."""
     if cfg.train.wandb == "off":

@@ -47,7 +47,8 @@ from drago.training.rundir import TRANSFER_FOLDER, RunDirError, read_run_config,
 
 __all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "TransferCase", "default_transfer_dir", "describe",
            "few_shot_schedule", "finished_stages", "paper_cases", "paper_transfer_plan", "plan_transfer",
-           "resolve_task", "stage_checkpoint", "training_returns", "transfer_config", "transfer_summary"]
+           "resolve_task", "reward_variant", "stage_checkpoint", "training_returns", "transfer_config",
+           "transfer_summary"]
 
 DEFAULT_EPISODES = 20  # learner episodes of a transfer (the few-shot protocol, paper §4.4)
 
@@ -63,8 +64,21 @@ PAPER_CASES: dict[str, tuple[TransferCase, ...]] = {
 DMC_TRANSFER_TASKS_DOMAINS = frozenset(t.domain for t in DMC_TRANSFER_TASKS.values())
 
 
-def default_transfer_dir(run_dir: Path, task: str, after: int) -> Path:
-    return Path(run_dir) / TRANSFER_FOLDER / f"{task}-after{after}"
+def default_transfer_dir(run_dir: Path, task: str, after: int, reward: str | None = None) -> Path:
+    """``RUN_DIR/transfer/TASK-afterK``; ``TASK-REWARD-afterK`` for a transfer that asks for another reward than
+    the run's transfers get by default (``reward``, from :func:`reward_variant`), so the two never share one."""
+    return Path(run_dir) / TRANSFER_FOLDER / (f"{task}-{reward}-after{after}" if reward else f"{task}-after{after}")
+
+
+def reward_variant(source: Config, task: str, dense_reward: bool | None) -> str | None:
+    """``"dense"`` or ``"sparse"`` when a transfer of ``task`` from a run with config ``source`` asks for another
+    reward than the run's transfers default to (its ``transfer.reward``, else the task's own); None otherwise,
+    and always on DeepMind Control, whose tasks have one reward each."""
+    if dense_reward is None or GRID_TASKS.get(task) is None:
+        return None
+    default = (source.transfer.reward == "dense" if source.transfer.reward is not None
+               else GRID_TASKS[task].dense)
+    return None if dense_reward == default else ("dense" if dense_reward else "sparse")
 
 
 def paper_cases(domain: str) -> tuple[TransferCase, ...]:
@@ -221,7 +235,8 @@ def plan_transfer(run_dir: Path, task: str, after: int, out: Path | None, **opti
     source = read_run_config(Path(run_dir))
     _, case = resolve_task(source, task)  # before the stage check: a typo in the task is the likelier mistake
     checkpoint = _check_stage(Path(run_dir), source, after)
-    out = Path(out) if out is not None else default_transfer_dir(run_dir, task, after)
+    out = (Path(out) if out is not None else
+           default_transfer_dir(run_dir, task, after, reward_variant(source, task, options.get("dense_reward"))))
     # Relative to the transfer directory, so moving the whole run tree keeps the link.
     relative = os.path.relpath(checkpoint.resolve(), out.resolve())
     if case is not None and case.pre_rollout_source is not None:

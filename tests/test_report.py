@@ -433,9 +433,9 @@ def test_report_has_a_transfer_section(transfers, tmp_path):
 
     # Figures: the sequence curves, the heatmap and the transfer curves (learner and total env steps).
     figures = re.findall(r"!\[[^]]*\]\(([^)]+)\)", md)
-    assert sorted(figures) == ["curves.png", "heatmap.png", "reviewer-pay.png", "transfer-curves.png",
-                               "visitation.png"]  # drago runs: a reviewer
-    assert len(page.images) == 5 and all(src.startswith("data:image/png;base64,") for src in page.images)
+    assert sorted(figures) == ["curves.png", "heatmap.png", "reviewer-pay.png", "reviewer-reward.png",
+                               "transfer-curves.png", "visitation.png"]  # drago runs: a reviewer
+    assert len(page.images) == 6 and all(src.startswith("data:image/png;base64,") for src in page.images)
     image = png((md_path.parent / "transfer-curves.png").read_bytes())
     assert image.height > 300 and not_blank(image)
     for table in page.tables.values():

@@ -86,6 +86,8 @@ def test_the_reviewers_pay_is_the_intrinsic_reward_of_the_old_models_predictions
 
     html, md = build_report([drago_run], tmp_path / "report")
     assert (tmp_path / "report" / "reviewer-pay.png").is_file() and "Where the reviewer is paid" in html.read_text()
+    # What the reviewer earned, episode by episode: drawn from task 2's reviewer rows of train.csv.
+    assert (tmp_path / "report" / "reviewer-reward.png").is_file() and "What the reviewer earned" in html.read_text()
     table = md.read_text().split("## What the reviewer is paid")[1].split("\n## ")[0]
     row = [c.strip() for c in next(line for line in table.splitlines() if line.startswith("| drago")).strip("|").split("|")]
     assert row[:5] == ["drago", "1: room1", "room2", "1", f"{pay.threshold:.2f}"]

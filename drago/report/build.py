@@ -27,7 +27,12 @@ from drago.report.tables import (
     runs_table,
 )
 from drago.report.paper import paper_tables, paper_training_table
-from drago.report.reviewer_pay import REVIEWER_PAY_PNG, reviewer_pay_section
+from drago.report.reviewer_pay import (
+    REVIEWER_PAY_PNG,
+    REVIEWER_REWARD_PNG,
+    reviewer_pay_section,
+    reviewer_reward_figure,
+)
 from drago.report.visitation import VISITATION_PNG, visitation_section
 from drago.report.zero_shot import zero_shot_matrix_of, zero_shot_rows, zero_shot_table
 from drago.report.transfers import relearning_metrics, training_table, transfer_block, transfer_gaps, transfer_tables
@@ -113,6 +118,9 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
                                "with a non-finite prediction.", heatmap, HEATMAP_PNG))
     sections += visitation_section(groups)
     sections += reviewer_pay_section(groups)
+    reviewer_reward = reviewer_reward_figure(groups, colours)
+    if reviewer_reward is not None:
+        sections.append(reviewer_reward)
     if transfers:
         cases = sorted({run.case for run in transfers})
         blocks = {run.path: transfer_block(run) for run in transfers}
@@ -144,7 +152,8 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
     html_path, md_path = out / REPORT_HTML, out / REPORT_MD
     try:
         out.mkdir(parents=True, exist_ok=True)
-        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, VISITATION_PNG, REVIEWER_PAY_PNG):
+        for figure_file in (CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, VISITATION_PNG, REVIEWER_PAY_PNG,
+                            REVIEWER_REWARD_PNG):
             (out / figure_file).unlink(missing_ok=True)  # a figure from an earlier report must not linger
         for section in sections:
             if isinstance(section, Figure):

@@ -21,7 +21,7 @@ TRANSFER_PNG = "transfer-curves.png"
 
 
 @dataclass(frozen=True)
-class _Panel:
+class Panel:
     """One panel of a learning-curve figure: per method, the values over seeds at each x."""
 
     title: str
@@ -30,7 +30,7 @@ class _Panel:
     series: dict[str, dict[int, list[float]]]
 
 
-def _panel(title: str, xlabel: str, x_key: str, runs: dict[str, list[list[dict[str, str]]]]) -> _Panel:
+def _panel(title: str, xlabel: str, x_key: str, runs: dict[str, list[list[dict[str, str]]]]) -> Panel:
     """A panel of ``runs`` (per method label, the eval rows each of its runs shows here) against ``x_key``."""
     y_key, ylabel = quantity_of(row for per_run in runs.values() for rows in per_run for row in rows)
     series: dict[str, dict[int, list[float]]] = {}
@@ -40,7 +40,7 @@ def _panel(title: str, xlabel: str, x_key: str, runs: dict[str, list[list[dict[s
                 x, y = as_number(row.get(x_key)), as_number(row.get(y_key))
                 if math.isfinite(x) and math.isfinite(y):
                     series.setdefault(label, {}).setdefault(int(x), []).append(y)
-    return _Panel(title, xlabel, ylabel, series)
+    return Panel(title, xlabel, ylabel, series)
 
 
 def _reviewer_steps(rows: Iterable[dict[str, str]]) -> bool:
@@ -48,17 +48,18 @@ def _reviewer_steps(rows: Iterable[dict[str, str]]) -> bool:
     return any(as_number(row.get("learner_env_step")) < as_number(row.get("env_step")) for row in rows)
 
 
-def _panels_png(grid: list[list[_Panel]], colours: dict[str, str]) -> bytes | None:
+def panels_png(grid: list[list[Panel]], colours: dict[str, str], rows_differ: bool = False) -> bytes | None:
     """Learning curves: rows x columns of panels, one line per method (mean over seeds) with its 95%
-    bootstrap CI band where more than one seed has a value; empty panels are left blank."""
+    bootstrap CI band where more than one seed has a value; empty panels are left blank. ``rows_differ``:
+    each row shows a quantity of its own, so panels share the y axis along rows instead of columns."""
     if not any(panel.series for row in grid for panel in row):
         return None
     from matplotlib.figure import Figure as MplFigure
 
     n_rows, n_cols = len(grid), len(grid[0])
-    same = all(panel.ylabel == FRACTION_LABEL for row in grid for panel in row)
+    same = not rows_differ and all(panel.ylabel == FRACTION_LABEL for row in grid for panel in row)
     fig = MplFigure(figsize=(0.6 + 3.0 * n_cols, 0.4 + 2.8 * n_rows), layout="constrained")
-    axes = fig.subplots(n_rows, n_cols, squeeze=False, sharey="all" if same else "col")
+    axes = fig.subplots(n_rows, n_cols, squeeze=False, sharey="all" if same else ("row" if rows_differ else "col"))
     for i, row in enumerate(grid):
         for j, panel in enumerate(row):
             ax = axes[i][j]
@@ -75,7 +76,7 @@ def _panels_png(grid: list[list[_Panel]], colours: dict[str, str]) -> bytes | No
             if i == 0:
                 ax.set_title(panel.title, fontsize=10)
             ax.set_xlabel(panel.xlabel, fontsize=9)
-            if j == 0 or not same:
+            if j == 0 or not (same or rows_differ):
                 ax.set_ylabel(panel.ylabel, fontsize=9)
             ax.grid(alpha=0.3)
             ax.tick_params(labelsize=8)
@@ -103,7 +104,7 @@ def curves_png(groups: dict[str, list[ReportedRun]], tasks: list[str], colours: 
                 [_panel(t, "total env steps in the task", "env_step", by_task[t]) for t in shown]]
     else:
         grid = [[_panel(t, "env steps in the task", "env_step", by_task[t]) for t in shown]]
-    return _panels_png(grid, colours)
+    return panels_png(grid, colours)
 
 
 def heatmap_figure(groups: dict[str, list[ReportedRun]]) -> bytes | None:
@@ -132,4 +133,4 @@ def transfer_png(tgroups: dict[str, list[ReportedRun]], cases: list[Case], colou
     grid = [[_panel(case_name(case), "learner env steps", "learner_env_step", runs_of(case)) for case in cases],
             [_panel(case_name(case), "total env steps (learner + reviewer)", "env_step", runs_of(case))
              for case in cases]]
-    return _panels_png(grid, colours)
+    return panels_png(grid, colours)

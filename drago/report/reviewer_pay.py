@@ -1,20 +1,31 @@
 """The report's "what the reviewer is paid" section (grid runs of the DRAGO methods that pay a reviewer): per
 method and stage, θ, the share of each earlier task's room where the old-model term pays, and the mean intrinsic
-reward per room, with maps of that reward on the grid (docs: Evaluation, where the reviewer goes)."""
+reward per room, with maps of that reward on the grid; and, for any domain, what the reviewer earned during
+each task, episode by episode, from ``train.csv`` (docs: Evaluation, where the reviewer goes)."""
 
 from __future__ import annotations
+
+import csv
+import math
 
 import numpy as np
 
 from drago.eval.coverage import ALL, GROUPS, CoverageError, cell_scores, transition_groups
 from drago.eval.reviewer_pay import PAID, StagePay, reviewer_pay_of_run
 from drago.report.content import Figure, Table
-from drago.report.runs import ReportedRun, task_room
+from drago.report.figures import Panel, panels_png
+from drago.report.runs import ReportedRun, as_number, task_room
 from drago.report.tables import format_summary
 
-__all__ = ["REVIEWER_PAY_PNG", "reviewer_pay_section"]
+__all__ = ["REVIEWER_PAY_PNG", "REVIEWER_REWARD_PNG", "reviewer_pay_section", "reviewer_reward_figure"]
 
 REVIEWER_PAY_PNG = "reviewer-pay.png"
+REVIEWER_REWARD_PNG = "reviewer-reward.png"
+# train.csv's per-episode sums of the reviewer's reward and its two terms, and θ's running estimate.
+REWARD_ROWS = (("old_model_episode_reward", "Σ r_old per reviewer episode"),
+               ("learner_model_episode_cost", "Σ c per reviewer episode"),
+               ("reviewer_episode_reward", "Σ r = Σ (r_old − α·c)"),
+               ("threshold", "θ estimated for the next task"))
 ROOMS = tuple(group for group in GROUPS if group != ALL)
 PAY_LABEL = "reviewer's reward r_old − α·c at the task's start\nmean over 4 headings × 3 actions"
 
@@ -74,3 +85,44 @@ def reviewer_pay_section(groups: dict[str, list[ReportedRun]]) -> list[Table | F
                     "seeds, one colour scale for all panels. The task's start (○) and goal (★) are marked.",
                     png, REVIEWER_PAY_PNG)
     return [table, figure]
+
+
+def _train_rows(run: ReportedRun) -> list[dict[str, str]]:
+    try:
+        with (run.path / "train.csv").open(newline="") as handle:
+            return list(csv.DictReader(handle))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return []  # no train.csv yet, or an unreadable one: the runs table reports the run
+
+
+def reviewer_reward_figure(groups: dict[str, list[ReportedRun]], colours: dict[str, str]) -> Figure | None:
+    """What the reviewer earned during each task with a reviewer (columns), episode by episode: the old-model
+    term, the cost, their difference and θ's running estimate (rows), mean over seeds with a 95% CI band."""
+    series: dict[str, dict[str, dict[str, dict[int, list[float]]]]] = {}  # task -> column -> label -> x -> values
+    tasks: list[str] = []
+    for label, runs in groups.items():
+        for run in runs:
+            for row in _train_rows(run):
+                if not row.get("reviewer_episode_reward"):
+                    continue
+                task, x = row["task"], as_number(row.get("env_step"))
+                if task not in tasks:
+                    tasks.append(task)
+                for column, _ in REWARD_ROWS:
+                    y = as_number(row.get(column))
+                    if math.isfinite(x) and math.isfinite(y):
+                        series.setdefault(task, {}).setdefault(column, {}).setdefault(label, {}).setdefault(
+                            int(x), []).append(y)
+    if not tasks:
+        return None
+    grid = [[Panel(task, "env steps in the task", ylabel, series[task].get(column, {})) for task in tasks]
+            for column, ylabel in REWARD_ROWS]
+    png = panels_png(grid, colours, rows_differ=True)
+    if png is None:
+        return None
+    return Figure("reviewer-reward", "What the reviewer earned",
+                  "Per task with a reviewer (columns), against the task's env steps: the sums over each reviewer "
+                  "episode of the old-model term r_old, of the current model's cost c and of the reward r = "
+                  "r_old − α·c the reviewer plans for, and the running estimate of θ the next task will use "
+                  "(θ stays fixed during a task: the previous task's last estimate). Mean over seeds with the 95% "
+                  "bootstrap CI as a band.", png, REVIEWER_REWARD_PNG)

@@ -199,6 +199,44 @@ def method_cost() -> None:
     save(fig, "method-cost.png")
 
 
+def reviewer_pay() -> None:
+    """DRAGO, seed 1: the reviewer's intrinsic reward on every cell when tasks 2-4 begin, and what it earned."""
+    cells = read("reviewer_pay_cells_seed1.csv")
+    terms = read("reviewer_terms_seed1.csv")
+    tasks = list(dict.fromkeys(r["paid_in_task"] for r in cells))
+    fig, axes = plt.subplots(1, len(tasks) + 1, figsize=(4.0 * (len(tasks) + 1), 3.8), constrained_layout=True,
+                             gridspec_kw={"width_ratios": [1] * len(tasks) + [1.3]})
+    maps = {task: np.full((27, 27), np.nan) for task in tasks}
+    for r in cells:
+        maps[r["paid_in_task"]][int(r["y"]), int(r["x"])] = float(r["mean_r"])
+    low = min(np.nanmin(m) for m in maps.values())
+    high = max(np.nanmax(m) for m in maps.values())
+    cmap = matplotlib.colormaps["viridis"].with_extremes(bad="#b8b8b8")
+    for ax, task in zip(axes, tasks):
+        image = ax.imshow(maps[task], cmap=cmap, vmin=low, vmax=high, interpolation="nearest")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"start of task {tasks.index(task) + 2}: {task}")
+    fig.colorbar(image, ax=axes[: len(tasks)], shrink=0.85, label="reward r = r_old − α·c, mean over the cell")
+    ax = axes[-1]
+    names = list(dict.fromkeys(r["task"] for r in terms))
+    x = np.arange(len(names))
+    for offset, (column, label) in zip((-0.2, 0.2), (("old_term_per_episode", "Σ r_old"),
+                                                      ("cost_per_episode", "Σ c"))):
+        for half, alpha in (("first half", 0.5), ("second half", 1.0)):
+            values = [float(r[column]) for name in names for r in terms if r["task"] == name
+                      and r["reviewer_episodes"] == half]
+            ax.bar(x + offset + (0.1 if half == "second half" else -0.1) / 2, values, width=0.18, alpha=alpha,
+                   color="C0" if column.startswith("old") else "C1",
+                   label=f"{label}, {half} of the task")
+    ax.set_xticks(x, names)
+    ax.set_ylabel("per reviewer episode (100 steps)")
+    ax.set_title("what the reviewer earned")
+    ax.legend(fontsize=8, frameon=False)
+    fig.suptitle("minigrid-cpu, drago seed 1: where the reviewer is paid, and what it earned")
+    save(fig, "reviewer-pay.png")
+
+
 def main() -> None:
     plt.rcParams.update({"font.size": 11, "axes.titlesize": 11})
     grid_retention_heatmap()
@@ -207,6 +245,7 @@ def main() -> None:
     cheetah_cpu_learning()
     cheetah_cpu_fewshot()
     method_cost()
+    reviewer_pay()
 
 
 if __name__ == "__main__":

@@ -82,3 +82,13 @@ def test_the_docs_tables_hold_the_same_numbers():
         rows = {row["method"]: row for row in csv.DictReader(handle)}
     for method, label in (("drago", "DRAGO"), ("continual", "Continual TDMPC")):
         assert {task: float(rows[label][task]) for task in PAPER_TRAINING_RETURNS[method]} == PAPER_TRAINING_RETURNS[method]
+
+
+def test_relearning_walker_from_the_final_model_meets_the_appendix(tmp_path):
+    runs = [transfer(tmp_path, "walker-cpu", method, seed, "walker-stand", 4)
+            for method in ("drago", "continual") for seed in (1, 2)]
+    few_shot = {str(run.path): {"return": 800.0 if run.method == "drago" else 500.0} for run in runs}
+    beside, leaders = (table.rows for table in paper_tables(label_runs(runs), [("walker-stand", 4)], few_shot))
+    assert [row[:3] for row in beside] == [("walker-stand after 4", "drago", "871.17 ± 55.07"),
+                                           ("walker-stand after 4", "continual", "463.60 ± 107.12")]
+    assert leaders == [("walker-stand after 4", "drago, continual", "drago", "drago", "yes")]

@@ -1,4 +1,4 @@
-"""The paper's published few-shot numbers beside a report's own (paper §4.4, Table 1; Appendix E).
+"""The paper's published few-shot numbers beside a report's own (paper §4.4, Table 1; its appendices).
 
 The report puts every transfer case the paper has a number for beside the runs' score read the paper's way
 (the return after the few-shot learner episodes), and says per case which method leads in the paper and
@@ -42,6 +42,12 @@ _TABLE1: dict[str, dict[str, Cell]] = {  # paper Table 1, and the curiosity colu
 #: ``(agent kind, case as the report names it, stage K) -> {method: (mean, std)}``: the paper's few-shot returns.
 PAPER_FEW_SHOT: dict[tuple[str, str, int], dict[str, Cell]] = {
     **{("tdmpc", name, DMC_TRANSFER_TASKS[name].stage): cells for name, cells in _TABLE1.items()},
+    # Appendix: relearning walker's training tasks from the final world model (the fourth stage), "reward at
+    # 40k steps": 40 learner episodes of 1,000 env steps (`drago transfer RUN --task walker-run --after 4
+    # --episodes 40 --few-shot-episodes 40`).
+    ("tdmpc", "walker-run", 4): {"drago": (371.46, 12.79), "continual": (300.52, 27.07)},
+    ("tdmpc", "walker-walk", 4): {"drago": (740.89, 54.90), "continual": (685.66, 43.05)},
+    ("tdmpc", "walker-stand", 4): {"drago": (871.17, 55.07), "continual": (463.60, 107.12)},
     # Appendix E: DRAGO-PETS against continual PETS on the grid, dense reward (the test tasks' own is sparse).
     ("pets", "room1to3 (dense)", 3): {"drago": (233.21, 21.07), "continual": (150.84, 62.37)},
     ("pets", "room1to2 (dense)", 2): {"drago": (101.03, 116.21), "continual": (161.70, 44.31)},
@@ -106,8 +112,9 @@ def paper_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
     if not rows:
         return []
     tables = [Table("paper-few-shot", "Transfer beside the paper",
-                    "The paper's few-shot return (paper §4.4, Table 1 and its appendix with curiosity; Appendix E "
-                    "for PETS: mean ± std over its seeds) beside this report's at equal learner episodes, the "
+                    "The paper's few-shot return (paper §4.4, Table 1 and its appendix with curiosity; the "
+                    "appendix's walker relearning after 40k steps; Appendix E for PETS: mean ± std over its seeds) "
+                    "beside this report's at equal learner episodes, the "
                     "paper's reading: mean ± std [95% bootstrap CI of the mean] over seeds. The paper's budgets "
                     "are those of its presets; a CPU preset's are much smaller, so compare the ranking, not the "
                     "returns.",

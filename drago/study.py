@@ -313,7 +313,7 @@ def _transfer_job(run: Job, source: Config, task: str, after: int, plan: StudyPl
     dense = None if plan.transfer_reward is None else plan.transfer_reward == "dense"
     variant = reward_variant(source, task, dense)
     case_dir = default_transfer_dir(run.directory, task, after, variant)
-    name = f"{task}-{variant}-after{after}" if variant else f"{task}-after{after}"
+    name = case_dir.name  # TASK-afterK, or TASK-REWARD-afterK
 
     def wanted() -> Config:
         # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N ...` would write.

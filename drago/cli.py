@@ -335,7 +335,8 @@ def _add_study_parser(sub) -> None:
     study = sub.add_parser(
         "study", help="the grid study in one command: methods x seeds, their transfer cases, one report",
         usage="drago study [PRESET] [--methods M ...] [--seeds S ...] [--out DIR] [--jobs N] "
-              "[--transfer-episodes N] [--transfer-eval-every N] [--transfer-reward R] [--no-transfer] "
+              "[--transfer-episodes N] [--transfer-eval-every N] [--transfer-few-shot-episodes N] [--cases TASK:K ...] "
+              "[--transfer-reward R] [--no-transfer] "
               "[--dry-run | --status | --report-only] [--backend {local,slurm}] [--wait] [SLURM options] [key=value ...]",
         description="Runs every method x seed on the preset's sequence into OUT/METHOD/seedS, the paper's "
                     "transfer cases of each run (as `drago transfer --paper-cases`), then `drago report` into "
@@ -358,6 +359,12 @@ def _add_study_parser(sub) -> None:
     study.add_argument("--transfer-eval-every", type=int, default=1, metavar="N",
                        help="evaluate each transfer after every N learner episodes (default 1; DeepMind Control "
                             "evaluations are costly, 5 still reads both few-shot scores)")
+    study.add_argument("--transfer-few-shot-episodes", type=int, default=None, metavar="N",
+                       help="read each transfer's few-shot score after N learner episodes (default 20, or "
+                            "--transfer-episodes if fewer)")
+    study.add_argument("--cases", nargs="+", default=None, metavar="TASK:K",
+                       help="transfer cases instead of the paper's: TASK learned from the world model saved after "
+                            "stage K, e.g. room1to2:2, or walker-run:4 to relearn a training task")
     study.add_argument("--transfer-reward", choices=("dense", "sparse"), default=None,
                        help="reward of the transfer cases (default: the run's transfer.reward, else the test task's "
                             "own, sparse on the grid); another one gets directories of its own, TASK-REWARD-afterK")
@@ -405,6 +412,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     DEFAULT_EPISODES, DEFAULT_METHODS = study.DEFAULT_EPISODES, study.DEFAULT_METHODS
     DEFAULT_PRESET, DEFAULT_SEEDS = study.DEFAULT_PRESET, study.DEFAULT_SEEDS
     default_study_dir, describe_plan, parse_seeds = study.default_study_dir, study.describe_plan, study.parse_seeds
+    parse_cases = study.parse_cases
     plan_study, run_study, write_report = study.plan_study, study.run_study, study.write_report
 
     overrides, preset = list(args.overrides), args.preset
@@ -444,7 +452,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
                       overrides=overrides, jobs=jobs, transfers=not args.no_transfer,
                       transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes,
                       transfer_eval_every=args.transfer_eval_every, cores=cores, check_settings=not args.status,
-                      transfer_reward=args.transfer_reward)
+                      transfer_reward=args.transfer_reward, transfer_few_shot_episodes=args.transfer_few_shot_episodes,
+                      cases=parse_cases(args.cases) if args.cases else None)
     echo = lambda line: print(line, flush=True)  # noqa: E731
     if args.status:
         for line in study_slurm.status_lines(plan):

@@ -50,12 +50,13 @@ from drago.training.transfer import (
     default_transfer_dir,
     few_shot_schedule,
     plan_transfer,
+    resolve_task,
     reward_variant,
 )
 
 __all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
-           "default_study_dir", "describe_plan", "directory_state", "parse_seeds", "plan_study", "run_study",
-           "write_report"]
+           "default_study_dir", "describe_plan", "directory_state", "parse_cases", "parse_seeds", "plan_study",
+           "run_study", "write_report"]
 
 DEFAULT_PRESET = "minigrid-cpu"
 DEFAULT_METHODS = ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer")
@@ -158,6 +159,8 @@ class StudyPlan:
     cases: tuple[tuple[str, int], ...]
     budget: str = ""  # Budget.describe() of the runs' config
     transfer_reward: str | None = None  # dense or sparse: the transfers' reward, if not their runs' default
+    transfer_few_shot_episodes: int | None = None  # None: 20, or the transfer's episodes if fewer
+    own_cases: bool = False  # the cases were chosen (--cases), not the paper's
     runs: list[Job] = field(default_factory=list)
     transfers: list[Job] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
@@ -215,7 +218,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                overrides: Sequence[str] = (), jobs: int = 1, transfers: bool = True,
                transfer_episodes: int = DEFAULT_EPISODES, transfer_eval_every: int = 1,
                cores: int | None = None, check_settings: bool = True,
-               transfer_reward: str | None = None) -> StudyPlan:
+               transfer_reward: str | None = None, transfer_few_shot_episodes: int | None = None,
+               cases: Sequence[tuple[str, int]] | None = None) -> StudyPlan:
     """Work out what a study still has to do, from its directories.
 
     Args:
@@ -232,6 +236,10 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         transfer_reward: ``dense`` or ``sparse`` for the transfers' reward (None: each run's default, its
             ``transfer.reward`` or the test task's own); a reward other than that default gets directories of
             its own (``TASK-REWARD-afterK``), so a study can hold both.
+        transfer_few_shot_episodes: Read each transfer's few-shot score after this many learner episodes
+            (None: 20, or ``transfer_episodes`` if fewer).
+        cases: ``(task, stage K)`` transfer cases instead of the paper's: any task of the domain (a training
+            task is relearned) or a test task of the catalogue.
         cores: CPU cores to share (default: those this process may use).
         check_settings: Refuse directories holding runs with other settings (off for ``--status``, which
             only reads what is there).
@@ -253,7 +261,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     if transfer_reward not in (None, "dense", "sparse"):
         raise StudyError(f"--transfer-reward must be dense or sparse, got {transfer_reward}")
     try:  # the check `drago transfer` makes, at plan time rather than when the first transfer starts
-        few_shot_schedule(transfer_episodes, eval_every=transfer_eval_every, flag="--transfer-")
+        few_shot_schedule(transfer_episodes, transfer_few_shot_episodes, transfer_eval_every, flag="--transfer-")
     except ConfigError as err:
         raise StudyError(str(err)) from None
     cores = cores or available_cores()
@@ -262,13 +270,20 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         overrides.append(f"train.threads={max(1, cores // jobs)}")
     out = Path(out) if out is not None else default_study_dir(preset)
     base = check_method(load_config(preset, overrides, method=methods[0], seed=seeds[0]))
-    cases = PAPER_CASES.get(base.env.domain, ()) if transfers else ()
     n_tasks = len(base.env.tasks)
+    paper = cases is None
+    if cases is not None:
+        cases = tuple(dict.fromkeys((str(task), int(after)) for task, after in cases))
+        _check_cases(base, cases, n_tasks)
+    else:
+        cases = PAPER_CASES.get(base.env.domain, ())
+    cases = cases if transfers else ()
     kept = tuple((task, after) for task, after in cases if after <= n_tasks)
     plan = StudyPlan(preset=preset, out=out, methods=methods, seeds=seeds, overrides=overrides,
                      tasks=tuple(base.env.tasks), jobs=jobs, threads=base.train.threads, cores=cores,
                      transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept,
-                     budget=Budget.from_config(base).describe(), transfer_reward=transfer_reward)
+                     budget=Budget.from_config(base).describe(), transfer_reward=transfer_reward,
+                     transfer_few_shot_episodes=transfer_few_shot_episodes, own_cases=bool(cases) and not paper)
     if transfers and not cases:
         plan.notes.append(f"the paper has no transfer cases for domain {base.env.domain}: none planned")
     left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
@@ -301,11 +316,40 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     return plan
 
 
+def _check_cases(cfg: Config, cases: Sequence[tuple[str, int]], n_tasks: int) -> None:
+    for task, after in cases:
+        try:
+            resolve_task(cfg, task)
+        except ConfigError as err:
+            raise StudyError(f"--cases {task}:{after}: {err}") from None
+        if not 1 <= after <= n_tasks:
+            raise StudyError(f"--cases {task}:{after}: the stage must be between 1 and {n_tasks}, the tasks of the "
+                             f"sequence ({', '.join(cfg.env.tasks)})")
+
+
+def parse_cases(items: Sequence[str]) -> list[tuple[str, int]]:
+    """``TASK:K`` arguments as ``(task, K)`` pairs.
+
+    Raises:
+        StudyError: an item without a positive integer after its colon (one line naming it).
+    """
+    cases = []
+    for item in items:
+        task, colon, after = item.rpartition(":")
+        if not (task and colon and after.isdigit() and int(after) > 0):
+            raise StudyError(f"--cases takes TASK:K with K the stage the world model is taken after, e.g. "
+                             f"room1to2:2; got '{item}'")
+        cases.append((task, int(after)))
+    return cases
+
+
 def transfer_argv(run_dir: Path, task: str, after: int, plan: StudyPlan) -> list[str]:
     """The ``drago transfer`` command of one case of the study."""
     reward = ["--reward", plan.transfer_reward] if plan.transfer_reward else []
+    few_shot = ([] if plan.transfer_few_shot_episodes is None else
+                ["--few-shot-episodes", str(plan.transfer_few_shot_episodes)])
     return ["transfer", str(run_dir), "--task", task, "--after", str(after), "--episodes", str(plan.transfer_episodes),
-            "--eval-every", str(plan.transfer_eval_every), *reward, "--no-progress"]
+            *few_shot, "--eval-every", str(plan.transfer_eval_every), *reward, "--no-progress"]
 
 
 def _transfer_job(run: Job, source: Config, task: str, after: int, plan: StudyPlan, logs: Path,
@@ -318,7 +362,8 @@ def _transfer_job(run: Job, source: Config, task: str, after: int, plan: StudyPl
     def wanted() -> Config:
         # Exactly the config `drago transfer RUN_DIR --task T --after K --episodes N ...` would write.
         return plan_transfer(run.directory, task, after, None, episodes=plan.transfer_episodes,
-                             eval_every=plan.transfer_eval_every, dense_reward=dense)[0]
+                             few_shot_episodes=plan.transfer_few_shot_episodes, eval_every=plan.transfer_eval_every,
+                             dense_reward=dense)[0]
 
     state, _ = _state(case_dir, wanted, "transfer", check)
     argv = {START: transfer_argv(run.directory, task, after, plan),
@@ -391,7 +436,8 @@ def describe_plan(plan: StudyPlan, verbose: bool = False, resources: Sequence[st
                   f"{plan.transfer_episodes} learner episode{'s' * (plan.transfer_episodes != 1)} each"
                   f"{f' with {plan.transfer_reward} reward' if plan.transfer_reward else ''}, "
                   f"evaluated after every {'' if plan.transfer_eval_every == 1 else f'{plan.transfer_eval_every} '}"
-                  f"episode{'s' * (plan.transfer_eval_every != 1)}"]
+                  f"episode{'s' * (plan.transfer_eval_every != 1)}"
+                  f"{'' if plan.transfer_few_shot_episodes is None else f', few-shot score after {plan.transfer_few_shot_episodes}'}"]
     if resources is None:
         lines.append(f"  jobs:      {plan.jobs} at a time on {plan.cores} core{'s' * (plan.cores != 1)}, new runs with "
                      f"train.threads={plan.threads}; each job's output in {plan.out / LOG_FOLDER}/")

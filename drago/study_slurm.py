@@ -633,6 +633,10 @@ def report_argv(plan: StudyPlan) -> list[str]:
             str(plan.transfer_eval_every)]
     if plan.transfer_reward:
         argv += ["--transfer-reward", plan.transfer_reward]
+    if plan.transfer_few_shot_episodes is not None:
+        argv += ["--transfer-few-shot-episodes", str(plan.transfer_few_shot_episodes)]
+    if plan.own_cases:
+        argv += ["--cases", *(f"{task}:{after}" for task, after in plan.cases)]
     if not plan.cases:
         argv.append("--no-transfer")
     return [*argv, "--report-only", *plan.overrides]

@@ -20,7 +20,9 @@ import yaml
 
 from drago import cli, study
 from drago.continual.naive import Continual
-from drago.study import DONE, RESUME, START, StudyError, describe_plan, parse_seeds, plan_study, run_study
+from drago.study import (DONE, RESUME, START, StudyError, describe_plan, parse_cases, parse_seeds, plan_study,
+                         run_study)
+from drago.study_slurm import report_argv
 
 METHODS = ("continual", "scratch")
 TINY = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100", "train.tensorboard=false",
@@ -97,6 +99,20 @@ def test_dry_run_of_a_short_sequence_leaves_out_the_cases_it_cannot_run(tmp_path
     assert job.log.name == "continual-seed1-room1to2-dense-after2.log"
     assert job.argv[job.argv.index("--reward") + 1] == "dense" and "50" in job.argv
     assert "50 learner episodes each with dense reward" in describe_plan(dense)[4]
+
+    # Cases of one's own: a training room relearned from the last stage, read after all 40 episodes. The report
+    # job of a SLURM study reruns the study command, which must name the same cases.
+    own = plan_study("smoke", ["continual"], [1], out=out, cases=[("room1", 2), ("room1to2", 1)],
+                     transfer_episodes=40, transfer_few_shot_episodes=40, transfer_eval_every=10)
+    assert [j.case for j in own.transfers] == [("room1", 2), ("room1to2", 1)]
+    assert own.transfers[0].argv[own.transfers[0].argv.index("--few-shot-episodes") + 1] == "40"
+    argv = report_argv(own)
+    assert argv[argv.index("--cases") + 1:argv.index("--cases") + 3] == ["room1:2", "room1to2:1"]
+    assert "--cases" not in report_argv(bare)  # the paper's cases need no flag
+    with pytest.raises(StudyError, match="between 1 and 4"):
+        plan_study("smoke", ["continual"], [1], out=out, cases=[("room1", 5)])
+    with pytest.raises(StudyError, match="TASK:K"):
+        parse_cases(["room1to2"])
 
     # Separate budgets: what every learner gets, what DRAGO's reviewer adds, and the way back to the shared one.
     separate = plan_study("smoke", ["drago"], [1], out=out, overrides=["train.learner_steps_per_task=400",

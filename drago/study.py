@@ -41,6 +41,7 @@ from typing import Any
 from drago.config import Config, ConfigError, load_config
 from drago.continual import check_method
 from drago.continual.base import Budget
+from drago.envs import get_domain
 from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
 from drago.training.resources import keep_freed_memory_requested
 from drago.training.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
@@ -270,6 +271,9 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         overrides.append(f"train.threads={max(1, cores // jobs)}")
     out = Path(out) if out is not None else default_study_dir(preset)
     base = check_method(load_config(preset, overrides, method=methods[0], seed=seeds[0]))
+    if transfer_reward is not None and not get_domain(base.env.domain).dense_reward:
+        raise StudyError(f"--transfer-reward applies to the grid only (a dense and a sparse reward); leave it out "
+                         f"for {base.env.domain}")
     n_tasks = len(base.env.tasks)
     paper = cases is None
     if cases is not None:

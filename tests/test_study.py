@@ -113,6 +113,8 @@ def test_dry_run_of_a_short_sequence_leaves_out_the_cases_it_cannot_run(tmp_path
         plan_study("smoke", ["continual"], [1], out=out, cases=[("room1", 5)])
     with pytest.raises(StudyError, match="TASK:K"):
         parse_cases(["room1to2"])
+    with pytest.raises(StudyError, match="grid only"):  # refused before any run, not by each transfer after it
+        plan_study("cheetah-cpu", ["continual"], [1], out=out, transfer_reward="dense")
 
     # Separate budgets: what every learner gets, what DRAGO's reviewer adds, and the way back to the shared one.
     separate = plan_study("smoke", ["drago"], [1], out=out, overrides=["train.learner_steps_per_task=400",

@@ -6,16 +6,18 @@ benchmark checks it on the four training rooms and the three transfer tasks, eac
 over a few seeds (episode e of a seed starts facing heading e mod 4, so 4 episodes average exactly over
 the start headings, as the DP optimum does). It repeats the check at shorter lookaheads to show where the
 ceiling breaks: at the agent's own horizons the goal of another room, or a sparse goal, is out of sight.
+Each measurement is made with no random steps (epsilon 0: the planner alone, which should be exact) and
+with the evaluation's default share of random steps (what the reported matrices are read against).
 
 It then times a whole zero-shot matrix (4 stages x 7 tasks) of one run on one thread: a run given with
 --run, or else a smoke run trained here with the minigrid-cpu world model's width (agent.mlp_dim=128),
 whose models learned nothing but cost what a trained one costs to plan with.
 
     .venv/bin/python benchmarks/zero_shot_ceiling.py [--seeds 3] [--episodes 4] [--horizons 5,10,15,20,25,100]
-        [--out docs/data/zero_shot_ceiling.csv] [--run RUN_DIR | --no-matrix] [--threads 1]
+        [--epsilons 0,0.05] [--out docs/data/zero_shot_ceiling.csv] [--run RUN_DIR | --no-matrix] [--threads 1]
 
 Not part of the test suite. It prints the date, the command and the commit; the CSV holds the table only
-(one row per task, reward and horizon). Wall seconds mean something only on an idle machine.
+(one row per task, reward, horizon and epsilon). Wall seconds mean something only on an idle machine.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from drago.envs.tasks import get_grid_task
 from drago.training.rundir import write_rows_csv
 from drago.eval.zero_shot import (
     DEFAULT_EPISODES,
+    DEFAULT_EPSILON,
     DEFAULT_HORIZON,
     GRID_TASKS_TRAINING,
     default_tasks,
@@ -47,7 +50,7 @@ from drago.eval.zero_shot import (
     zero_shot_matrix,
 )
 
-COLUMNS = ("task", "reward", "horizon", "optimum", "ceiling_mean", "ceiling_std", "fraction", "optimal_episodes",
+COLUMNS = ("task", "reward", "horizon", "epsilon", "optimum", "ceiling_mean", "ceiling_std", "fraction", "optimal_episodes",
            "seeds", "episodes", "wall_s")
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -63,7 +66,7 @@ def commit() -> str:
         return "unknown"
 
 
-def measure(task_name: str, dense: bool, horizon: int, seeds: int, episodes: int) -> dict:
+def measure(task_name: str, dense: bool, horizon: int, epsilon: float, seeds: int, episodes: int) -> dict:
     """The ceiling of one task and reading: per seed the mean over its episodes, then mean and std over seeds."""
     task = get_grid_task(task_name, dense=dense)
     per_heading = optimal_returns(task)
@@ -72,13 +75,14 @@ def measure(task_name: str, dense: bool, horizon: int, seeds: int, episodes: int
     start = time.perf_counter()
     means, optimal = [], 0
     for seed in range(seeds):
-        returns = play(model, task, episodes, seed, 0, horizon)
+        returns = play(model, task, episodes, seed, 0, horizon, epsilon)
         means.append(float(returns.mean()))
         # Episode e starts facing heading e mod 4: compare it with that heading's own optimum.
         optimal += sum(int(abs(r - per_heading[e % 4]) < 1e-9) for e, r in enumerate(returns.tolist()))
     wall = time.perf_counter() - start
     mean = statistics.fmean(means)
-    return {"task": task_name, "reward": "dense" if dense else "sparse", "horizon": horizon, "optimum": optimum,
+    return {"task": task_name, "reward": "dense" if dense else "sparse", "horizon": horizon, "epsilon": epsilon,
+            "optimum": optimum,
             "ceiling_mean": mean, "ceiling_std": statistics.stdev(means) if seeds > 1 else 0.0,
             "fraction": mean / optimum, "optimal_episodes": optimal / (seeds * episodes), "seeds": seeds,
             "episodes": episodes, "wall_s": round(wall, 3)}
@@ -102,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=DEFAULT_EPISODES)
     parser.add_argument("--horizons", default=f"5,10,15,20,25,{DEFAULT_HORIZON}",
                         help="lookaheads to measure; the last is the one the table headlines")
+    parser.add_argument("--epsilons", default=f"0,{DEFAULT_EPSILON:g}",
+                        help="shares of random steps to measure; the last is the one the table headlines")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "data" / "zero_shot_ceiling.csv")
     parser.add_argument("--run", type=Path, help="time the matrix of this grid run instead of a smoke run")
     parser.add_argument("--no-matrix", action="store_true", help="skip timing a run's matrix")
@@ -109,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     horizons = [int(h) for h in args.horizons.split(",")]
+    epsilons = [float(e) for e in args.epsilons.split(",")]
 
     print(f"date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}")
     print(f"command: {' '.join([Path(sys.executable).name, *sys.argv])}")
@@ -116,28 +123,30 @@ def main(argv: list[str] | None = None) -> int:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s); seeds {args.seeds}, "
           f"episodes per seed {args.episodes}")
     # One-time costs (the grid's transition table) are paid before anything is timed.
-    play(lattice_model(true_dynamics), get_grid_task("room1"), 1, 0, 0, 5)
+    play(lattice_model(true_dynamics), get_grid_task("room1"), 1, 0, 0, 5, 0.0)
 
     tasks = default_tasks(GRID_TASKS_TRAINING)
-    rows = [measure(t, dense, h, args.seeds, args.episodes)
-            for h in horizons for t in tasks for dense in (True, False)]
+    rows = [measure(t, dense, h, e, args.seeds, args.episodes)
+            for e in epsilons for h in horizons for t in tasks for dense in (True, False)]
     write_rows_csv(rows, COLUMNS, args.out)
 
-    headline = horizons[-1]
-    print(f"\nceiling at horizon {headline} (mean +- std over seeds of the mean return of {args.episodes} episodes)")
+    headline, noise = horizons[-1], epsilons[-1]
+    print(f"\nceiling at horizon {headline}, epsilon {noise:g} (mean +- std over seeds of the mean return of "
+          f"{args.episodes} episodes)")
     print(f"{'task':<9} {'reward':<6} {'DP optimum':>10} {'ceiling':>16} {'fraction':>8} {'optimal eps':>11} "
           f"{'wall s':>7}")
     for r in rows:
-        if r["horizon"] == headline:
+        if r["horizon"] == headline and r["epsilon"] == noise:
             print(f"{r['task']:<9} {r['reward']:<6} {r['optimum']:>10.2f} "
                   f"{r['ceiling_mean']:>9.2f} +- {r['ceiling_std']:<4.2f} {r['fraction']:>8.3f} "
                   f"{r['optimal_episodes']:>11.2f} {r['wall_s']:>7.2f}")
-    print("\nfraction of the DP optimum by lookahead (rows: horizon)")
+    print("\nfraction of the DP optimum by lookahead (rows: epsilon and horizon)")
     labels = [f"{t}:{d[0]}" for t in tasks for d in ("dense", "sparse")]
-    print(f"{'horizon':>7} " + " ".join(f"{label:>10}" for label in labels))
-    for h in horizons:
-        cells = [r["fraction"] for r in rows if r["horizon"] == h]
-        print(f"{h:>7} " + " ".join(f"{c:>10.3f}" for c in cells))
+    print(f"{'eps':>5} {'horizon':>7} " + " ".join(f"{label:>10}" for label in labels))
+    for e in epsilons:
+        for h in horizons:
+            cells = [r["fraction"] for r in rows if r["horizon"] == h and r["epsilon"] == e]
+            print(f"{e:>5g} {h:>7} " + " ".join(f"{c:>10.3f}" for c in cells))
     print(f"\nwrote {args.out}")
 
     if not args.no_matrix:

@@ -68,7 +68,7 @@ def _parser() -> argparse.ArgumentParser:
     zero_shot = eval_sub.add_parser(
         "zero-shot", help="zero-shot return matrix: plan with each stage's world model and the true reward (grid)",
         usage="drago eval zero-shot RUN_DIR [RUN_DIR ...] [--tasks T ...] [--reward R ...] [--episodes N] "
-              "[--horizon H] [--out CSV]",
+              "[--horizon H] [--epsilon E] [--out CSV]",
         description="Plays every task with the world model after each stage and the task's true reward, no "
                     "learned head and no learning (docs: Evaluation, zero-shot planning): R[stage, task] as "
                     "return and fraction of the DP optimum, with ACC/BWT over the training rooms. Writes "
@@ -82,6 +82,10 @@ def _parser() -> argparse.ArgumentParser:
                            help="episodes per cell; episode e starts facing heading e mod 4 (default 4)")
     zero_shot.add_argument("--horizon", type=int, default=None, metavar="H",
                            help="planner lookahead in steps (default: the whole episode)")
+    zero_shot.add_argument("--epsilon", type=float, default=None, metavar="E",
+                           help="share of steps played with a random action, so that one wrong transition on "
+                                "the route does not trap the planner for the rest of the episode (default 0.05; "
+                                "0: deterministic)")
     zero_shot.add_argument("--out", type=Path, default=None, metavar="CSV",
                            help="also write every run's rows into this one CSV")
     _add_transfer_parser(sub)
@@ -199,10 +203,11 @@ def _cmd_eval_zero_shot(args: argparse.Namespace) -> int:
     from drago.api import (ZERO_SHOT_FILE, format_zero_shot_table, zero_shot_checkpoints, zero_shot_matrix,
                            zero_shot_metrics, write_zero_shot_csv)
 
-    horizon = {} if args.horizon is None else {"horizon": args.horizon}
+    chosen = {name: value for name, value in (("horizon", args.horizon), ("epsilon", args.epsilon))
+              if value is not None}
     rows = _evaluate_runs(args, check=zero_shot_checkpoints,
                           measure=lambda run_dir: zero_shot_matrix(run_dir, tasks=args.tasks, episodes=args.episodes,
-                                                                   readings=args.reward, **horizon),
+                                                                   readings=args.reward, **chosen),
                           write=write_zero_shot_csv, filename=ZERO_SHOT_FILE,
                           title="zero-shot return as a fraction of the DP optimum, planning with the world model "
                                 "after each stage and the true reward (* a paper transfer case):",

@@ -566,4 +566,7 @@ def test_report_reuses_a_fresh_zero_shot_csv_made_with_the_defaults(runs, tmp_pa
     assert "zero-shot returns computed from the checkpoints" not in md_path.read_text()
     write_zero_shot_csv(zero_shot_matrix(run, episodes=1), run / ZERO_SHOT_FILE)  # not the report's numbers
     _, md_path = build_report([run], tmp_path / "other")
-    assert "made with other tasks, episodes or horizon" in md_path.read_text()
+    assert "made with other tasks, episodes, horizon or epsilon" in md_path.read_text()
+    write_zero_shot_csv(zero_shot_matrix(run, epsilon=0), run / ZERO_SHOT_FILE)  # deterministic: not the default
+    _, md_path = build_report([run], tmp_path / "deterministic")
+    assert "made with other tasks, episodes, horizon or epsilon" in md_path.read_text()

@@ -67,6 +67,7 @@ from drago.training.transfer import PAPER_CASES
 __all__ = [
     "CSV_COLUMNS",
     "DEFAULT_EPISODES",
+    "DEFAULT_EPSILON",
     "DEFAULT_HORIZON",
     "GRID_TASKS_TRAINING",
     "LOST",
@@ -106,10 +107,16 @@ N_ACTIONS = 3
 DEFAULT_HORIZON = EPISODE_LENGTH
 #: Episodes per (stage, task, reward); episode e starts facing heading e mod 4 (see :func:`play`).
 DEFAULT_EPISODES = 4
+#: Share of steps played with a uniformly random action instead of the plan. A planner that believes one
+#: wrong transition on its route (a step through a block the model thinks open) replays it from the same
+#: state forever and earns nothing for the rest of the episode, however good the model is elsewhere; a few
+#: random steps let it leave, so one wrong transition costs a few steps rather than the episode. This is the
+#: reason Atari agents are evaluated with epsilon = 0.05 (Mnih et al. 2015). 0 gives the deterministic form.
+DEFAULT_EPSILON = 0.05
 #: Which reward a task is read with: its catalogue's own (training rooms dense, transfers sparse), or either.
 READINGS = ("task", "dense", "sparse")
 CSV_COLUMNS: tuple[str, ...] = ("run", "method", "seed", "stage", "stage_task", "task", "reward", "return",
-                                "return_std", "optimum", "fraction", "episodes", "horizon")
+                                "return_std", "optimum", "fraction", "episodes", "horizon", "epsilon")
 #: A suggested file name for a run's matrix (nothing here writes it into a run).
 ZERO_SHOT_FILE = "zero_shot.csv"
 #: The grid's training rooms, in the order of its sequence.
@@ -258,13 +265,14 @@ class LatticePlanner:
 
 
 def play(model: LatticeModel, task: GridTask, episodes: int = DEFAULT_EPISODES, seed: int = 0, stage: int = 0,
-         horizon: int = DEFAULT_HORIZON) -> np.ndarray:
+         horizon: int = DEFAULT_HORIZON, epsilon: float = DEFAULT_EPSILON) -> np.ndarray:
     """Play ``episodes`` episodes of ``task`` in the real env, planning over ``model``.
 
     Episode e starts on the task's start cell facing heading e mod 4: the env draws the heading uniformly,
     and cycling makes every 4 episodes an exact average over it, the average the DP optimum takes. Its
-    ties are broken on a generator of its own, seeded from (seed, stage, task, reward type, e), so an
-    episode does not depend on how many others are played; torch's global generator is never used.
+    random steps (``epsilon``, see :data:`DEFAULT_EPSILON`) and its ties are drawn from a generator of its
+    own, seeded from (seed, stage, task, reward type, e), so an episode does not depend on how many others
+    are played; torch's global generator is never used. With ``epsilon`` 0 nothing is drawn but ties.
 
     Returns:
         (episodes,) float64 undiscounted returns.
@@ -282,7 +290,10 @@ def play(model: LatticeModel, task: GridTask, episodes: int = DEFAULT_EPISODES, 
             for t in range(EPISODE_LENGTH):
                 x, y, d = decode_observation(obs)
                 state = (x * SIZE + y) * 4 + d
-                action = planner.act(state, EPISODE_LENGTH - t, generator)
+                if epsilon > 0 and float(torch.rand((), generator=generator)) < epsilon:
+                    action = int(torch.randint(N_ACTIONS, (), generator=generator))
+                else:
+                    action = planner.act(state, EPISODE_LENGTH - t, generator)
                 obs, reward, terminated, truncated, _ = env.step(action)
                 returns[e] += reward
                 if terminated or truncated:
@@ -323,20 +334,22 @@ def _optimum(name: str, dense: bool) -> float:
     return float(value)
 
 
-def _row(task: GridTask, returns: np.ndarray, horizon: int, **head: Any) -> dict[str, Any]:
+def _row(task: GridTask, returns: np.ndarray, horizon: int, epsilon: float, **head: Any) -> dict[str, Any]:
     optimum = _optimum(task.name, task.dense)
     mean = float(np.mean(returns))
     return {**head, "task": task.name, "reward": "dense" if task.dense else "sparse", "return": mean,
             # Population std over the episodes, as eval.csv's episode_reward_std.
             "return_std": float(np.std(returns)), "optimum": optimum, "fraction": mean / optimum,
-            "episodes": len(returns), "horizon": int(horizon)}
+            "episodes": len(returns), "horizon": int(horizon), "epsilon": float(epsilon)}
 
 
-def _check_budget(episodes: int, horizon: int) -> None:
+def _check_budget(episodes: int, horizon: int, epsilon: float) -> None:
     if int(episodes) < 1:
         raise ZeroShotError(f"episodes must be at least 1, got {episodes}")
     if int(horizon) < 1:
         raise ZeroShotError(f"horizon must be at least 1, got {horizon}")
+    if not 0 <= float(epsilon) < 1:
+        raise ZeroShotError(f"epsilon must be in [0, 1), got {epsilon}")
 
 
 def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
@@ -358,7 +371,7 @@ def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
 
 def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, episodes: int = DEFAULT_EPISODES,
                      seed: int = 0, device: str = "cpu", readings: Sequence[str] = ("task",),
-                     horizon: int = DEFAULT_HORIZON) -> list[dict[str, Any]]:
+                     horizon: int = DEFAULT_HORIZON, epsilon: float = DEFAULT_EPSILON) -> list[dict[str, Any]]:
     """The zero-shot return matrix of a grid run: plan with the world model after each finished stage.
 
     Args:
@@ -370,6 +383,7 @@ def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, ep
         readings: which rewards: ``"task"`` the task's own (training rooms dense, transfers sparse),
             ``"dense"``, ``"sparse"``; a task read twice the same way appears once.
         horizon: the planner's lookahead (capped by the steps left in the episode).
+        epsilon: share of steps played with a random action (:data:`DEFAULT_EPSILON`).
 
     Returns:
         Rows with the keys of :data:`CSV_COLUMNS`, one per (stage, task, reward), stages in order. ``seed``
@@ -381,7 +395,7 @@ def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, ep
         ZeroShotError: a run that is not a grid run, has no finished stage, or a bad argument (one line).
         drago.training.checkpoint.CheckpointError: a corrupt or mismatched checkpoint.
     """
-    _check_budget(episodes, horizon)
+    _check_budget(episodes, horizon, epsilon)
     cfg, checkpoints = run_checkpoints(run_dir)
     resolved = _resolve(default_tasks(cfg.env.tasks) if tasks is None else tasks, readings)
     rows: list[dict[str, Any]] = []
@@ -389,25 +403,26 @@ def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, ep
     for checkpoint, predictor in grid_world_models(checkpoints, device, refusal, ZeroShotError):
         model = lattice_model(model_dynamics(predictor.world_model), device=device)
         for task in resolved:
-            returns = play(model, task, episodes, seed, checkpoint.stage, horizon)
-            rows.append(_row(task, returns, horizon, run=str(run_dir), method=cfg.method.name, seed=cfg.train.seed,
-                             stage=checkpoint.stage, stage_task=checkpoint.task))
+            returns = play(model, task, episodes, seed, checkpoint.stage, horizon, epsilon)
+            rows.append(_row(task, returns, horizon, epsilon, run=str(run_dir), method=cfg.method.name,
+                             seed=cfg.train.seed, stage=checkpoint.stage, stage_task=checkpoint.task))
     return rows
 
 
 def ceiling(tasks: Sequence[str] | None = None, episodes: int = DEFAULT_EPISODES, seed: int = 0,
-            readings: Sequence[str] = ("dense", "sparse"), horizon: int = DEFAULT_HORIZON) -> list[dict[str, Any]]:
+            readings: Sequence[str] = ("dense", "sparse"), horizon: int = DEFAULT_HORIZON,
+            epsilon: float = DEFAULT_EPSILON) -> list[dict[str, Any]]:
     """The evaluation's ceiling: :func:`zero_shot_matrix`'s planning with the true dynamics in place of a model.
 
     Rows have the same keys, with ``run`` = ``"ceiling"``, ``method`` = ``"true-dynamics"``, ``seed`` the
     evaluation seed and ``stage`` 0. Default tasks: the four training rooms and the transfer tasks, each
     read dense and sparse.
     """
-    _check_budget(episodes, horizon)
+    _check_budget(episodes, horizon, epsilon)
     resolved = _resolve(default_tasks(GRID_TASKS_TRAINING) if tasks is None else tasks, readings)
     model = lattice_model(true_dynamics)
-    return [_row(task, play(model, task, episodes, seed, _CEILING_STAGE, horizon), horizon, run="ceiling",
-                 method="true-dynamics", seed=int(seed), stage=_CEILING_STAGE, stage_task="")
+    return [_row(task, play(model, task, episodes, seed, _CEILING_STAGE, horizon, epsilon), horizon, epsilon,
+                 run="ceiling", method="true-dynamics", seed=int(seed), stage=_CEILING_STAGE, stage_task="")
             for task in resolved]
 
 

@@ -25,15 +25,17 @@ the dense reward is gated to the goal's quadrant and a transfer's reward is spar
 sequence reaches the goal every sequence scores 0 and CEM has nothing to refit. Exhaustive lookahead over
 3 actions is exact instead, and on the lattice it costs a few table sweeps per step, so the horizon can be
 the rest of the episode (the default, :data:`DEFAULT_HORIZON` = 100). With the true dynamics in place of
-the model (:func:`ceiling`) the evaluation then reaches the DP optimum of every task exactly:
-``benchmarks/zero_shot_ceiling.py`` measures it, and how the ceiling falls with shorter horizons.
+the model (:func:`ceiling`) the planner alone reaches the DP optimum of every task exactly; the default share
+of random steps (:data:`DEFAULT_EPSILON`) costs 3-7% of it. ``benchmarks/zero_shot_ceiling.py`` measures
+both, and how the ceiling falls with shorter horizons.
 
 What the projection to the lattice means: errors smaller than half a cell never compound, as they would if
 raw predictions were chained; a transition the model gets wrong by a cell or more (the exact-match errors
 that :mod:`drago.eval.coverage` counts) is what the planner believes. The reward needs no projection of its
 own: it is a function of decoded cells, like the env's. Nothing is learned during an episode either, so a
-wrong transition on the way (a step through a wall the model does not know) is believed at every step and
-the agent stays against it: the return is that of the model's own best plan carried out in the real world.
+wrong transition on the way (a step through a block the model does not know) is believed at every step; the
+random steps give the agent a chance to leave it, and the return is that of the model's own best plan
+carried out in the real world.
 """
 
 from __future__ import annotations

@@ -103,7 +103,7 @@ def paper_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
             here[label] = summarize([as_number(few_shot.get(str(run.path), {}).get("return")) for run in mine])
             cells[label] = paper[method]
             mean, std = paper[method]
-            rows.append((case_name(case), label, f"{mean:.2f} ± {std:.2f}", _shown(here[label]), str(here[label].n)))
+            rows.append((case_name(case), label, f"{mean:.2f} ± {std:.2f}", here[label].format(DIGITS), str(here[label].n)))
         compared = [label for label in here if here[label].n > 0]
         if len(compared) >= 2:
             best, separates = leader({label: here[label] for label in compared})
@@ -128,14 +128,6 @@ def paper_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
     return tables
 
 
-def _shown(s: Summary) -> str:
-    if s.n == 0:
-        return "–"
-    if s.n == 1:
-        return f"{s.mean:.{DIGITS}f}"
-    return f"{s.mean:.{DIGITS}f} ± {s.std:.{DIGITS}f} [{s.ci_low:.{DIGITS}f}, {s.ci_high:.{DIGITS}f}]"
-
-
 def paper_training_table(groups: dict[str, list[ReportedRun]], tasks: list[str]) -> list[Table]:
     """The appendix's final training returns beside the runs' (TD-MPC runs of the methods it reports)."""
     rows = []
@@ -147,7 +139,7 @@ def paper_training_table(groups: dict[str, list[ReportedRun]], tasks: list[str])
             if task not in paper:
                 continue
             s = summarize([as_number(run.finished[task].get("final_eval_return")) for run in runs if task in run.finished])
-            rows.append((label, task, f"{paper[task]:.2f}", _shown(s), str(s.n)))
+            rows.append((label, task, f"{paper[task]:.2f}", s.format(DIGITS), str(s.n)))
     if not rows:
         return []
     return [Table("paper-training", "Training returns beside the paper",

@@ -16,6 +16,7 @@ from drago.report.content import Figure, Table
 from drago.report.figures import Panel, panels_png
 from drago.report.runs import ReportedRun, as_number, task_room
 from drago.report.tables import format_summary
+from drago.training.runs import LOG_FILES
 
 __all__ = ["REVIEWER_PAY_PNG", "REVIEWER_REWARD_PNG", "reviewer_pay_section", "reviewer_reward_figure"]
 
@@ -89,7 +90,7 @@ def reviewer_pay_section(groups: dict[str, list[ReportedRun]]) -> list[Table | F
 
 def _train_rows(run: ReportedRun) -> list[dict[str, str]]:
     try:
-        with (run.path / "train.csv").open(newline="") as handle:
+        with (run.path / LOG_FILES["train"]).open(newline="") as handle:
             return list(csv.DictReader(handle))
     except (OSError, UnicodeDecodeError, csv.Error):
         return []  # no train.csv yet, or an unreadable one: the runs table reports the run

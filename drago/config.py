@@ -244,6 +244,7 @@ PRECISIONS = ("auto", "float32", "bfloat16")
 COMPILE_CHOICES = ("auto", "true", "false")
 PRE_ROLLOUT_PLANNING = ("source", "code")
 AGENT_KINDS = ("tdmpc", "pets")
+INTRINSIC_REWARDS = ("code", "paper")  # the reviewer's reward: the official code's form or the paper's (§3.2)
 
 
 def available_presets() -> list[str]:
@@ -505,7 +506,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "method.vae_data": ("combined", "learner"),
     "method.rehearsal_mode": ("separate", "joint"),
     "method.rehearsal_target": ("pre_squash", "post_squash"),
-    "method.intrinsic_reward": ("code", "paper"),
+    "method.intrinsic_reward": INTRINSIC_REWARDS,
     "transfer.pre_rollout_planning": PRE_ROLLOUT_PLANNING,
     "train.wandb": ("off", "online", "offline"),
 }

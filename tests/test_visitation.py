@@ -13,7 +13,8 @@ from helpers import QUIET
 from drago import cli
 from drago.envs.fourrooms import is_traversable, observation
 from drago.envs.tasks import GRID_TASKS
-from drago.eval.coverage import grid_coverage
+from drago.config import ConfigError
+from drago.eval.coverage import grid_coverage, grid_transitions
 from drago.eval.predictor import load_world_model
 from drago.eval.reviewer_pay import PAID, pays_a_reviewer, reviewer_pay_of_run
 from drago.report import build_report
@@ -92,6 +93,24 @@ def test_the_reviewers_pay_is_the_intrinsic_reward_of_the_old_models_predictions
     row = [c.strip() for c in next(line for line in table.splitlines() if line.startswith("| drago")).strip("|").split("|")]
     assert row[:5] == ["drago", "1: room1", "room2", "1", f"{pay.threshold:.2f}"]
     assert row[5] == f"{pay.rooms['room1']['paid']:.2f}"  # the old rooms after task 1: room 1
+
+
+def test_what_the_reviewer_would_have_been_paid_under_the_papers_form_or_another_theta(drago_run):
+    """The paper's form on the same checkpoint: r_old = sigmoid(-log mean|err|) = 1 / (1 + mean|err|), and at a
+    task's start (current model = old model) r = (1 - 0.5) r_old; another theta shifts the code's sigmoid."""
+    checkpoint = drago_run / "checkpoints" / "task1_room1.pt"
+    coverage = grid_coverage(load_world_model(checkpoint))
+    mean_abs_error = np.abs(coverage.predicted - grid_transitions()[2]).mean(-1)
+    paper = reviewer_pay_of_run(drago_run, variant="paper")[0]
+    np.testing.assert_allclose(paper.old_term, 1.0 / (1.0 + mean_abs_error), atol=1e-4)
+    np.testing.assert_allclose(paper.reward, 0.5 * paper.old_term, atol=1e-6)
+
+    shifted = reviewer_pay_of_run(drago_run, threshold=7.25)[0]
+    sigmoid = lambda x: 1.0 / (1.0 + np.exp(-x))  # noqa: E731
+    assert shifted.threshold == 7.25
+    np.testing.assert_allclose(shifted.old_term, sigmoid(4.0 * (coverage.score - 7.25)), atol=1e-4)
+    with pytest.raises(ConfigError, match="valid: code, paper"):
+        reviewer_pay_of_run(drago_run, variant="papr")
 
 
 def test_only_methods_with_a_reviewers_reward_are_paid():

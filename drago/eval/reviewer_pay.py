@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from drago.config import ConfigError
+from drago.config import INTRINSIC_REWARDS, ConfigError
 from drago.continual.generative import intrinsic_reward
 from drago.continual.registry import get_method
 from drago.eval.coverage import ALL, GROUPS, transition_groups, grid_transitions, run_checkpoints
@@ -67,10 +67,16 @@ def pays_a_reviewer(method: str) -> bool:
         return False
 
 
-def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu") -> list[StagePay]:
+def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu", variant: str | None = None,
+                        threshold: float | None = None) -> list[StagePay]:
     """The pay maps of every finished stage of a grid run that is followed by another task of its sequence.
 
     Returns an empty list for runs whose method pays no reviewer (``continual``, ``drago-no-reviewer``, ...).
+
+    ``variant`` and ``threshold`` ask "what would this reviewer have been paid" on the same checkpoints: the
+    other form of the reward (``paper`` or ``code``, see
+    :func:`~drago.continual.generative.intrinsic_reward`) or another θ than the saved one. By default the
+    run's own form and each checkpoint's θ, i.e. what its reviewer was actually paid.
 
     Raises:
         CoverageError: Not a grid run, or no task finished yet.
@@ -79,6 +85,9 @@ def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu") -> list[StageP
     cfg, checkpoints = run_checkpoints(run_dir)
     if not pays_a_reviewer(cfg.method.name):
         return []
+    variant = variant or cfg.method.intrinsic_reward
+    if variant not in INTRINSIC_REWARDS:
+        raise ConfigError(f"unknown intrinsic reward variant '{variant}'; valid: {', '.join(INTRINSIC_REWARDS)}")
     data = grid_transitions()
     obs, actions, next_obs = (torch.tensor(a, device=device) for a in data[:3])  # copies: the arrays are read-only
     groups = transition_groups()
@@ -87,17 +96,16 @@ def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu") -> list[StageP
         if checkpoint.stage >= len(cfg.env.tasks):
             continue
         loaded = load_task_checkpoint(checkpoint.path, device)
-        threshold = _saved_threshold(loaded.data, cfg.method.initial_threshold)
+        theta = _saved_threshold(loaded.data, cfg.method.initial_threshold) if threshold is None else threshold
         model = loaded.world_model.eval()
-        pay = intrinsic_reward(model, model, obs, actions, next_obs, threshold, cfg.method.cost_coef,
-                               cfg.method.intrinsic_reward)
+        pay = intrinsic_reward(model, model, obs, actions, next_obs, theta, cfg.method.cost_coef, variant)
         old_term, cost, reward = (t.double().cpu().numpy() for t in (pay.old_reward, pay.cost, pay.reward))
         rooms = {}
         for group in GROUPS:
             mask = np.ones(len(groups), dtype=bool) if group == ALL else groups == group
             rooms[group] = {"old_term": float(old_term[mask].mean()), "paid": float((old_term[mask] > PAID).mean()),
                             "reward": float(reward[mask].mean())}
-        pays.append(StagePay(checkpoint.stage, checkpoint.task, cfg.env.tasks[checkpoint.stage], threshold,
+        pays.append(StagePay(checkpoint.stage, checkpoint.task, cfg.env.tasks[checkpoint.stage], theta,
                              old_term, cost, reward, rooms))
     return pays
 

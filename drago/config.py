@@ -119,8 +119,8 @@ class TrainConfig:
     """Budgets, evaluation, checkpoints and the machine."""
 
     steps_per_task: int = 300_000  # agent steps per task, learner and reviewer together (the code's count)
-    # Separate budgets instead: when set, a task ends after this many learner steps (steps_per_task is
-    # then unused) and DRAGO's reviewer collects up to reviewer_steps_per_task (None: as many).
+    # Separate budgets instead, when either is set: a task ends after learner_steps_per_task learner steps
+    # (None: steps_per_task) and DRAGO's reviewer collects up to reviewer_steps_per_task (None: as many).
     learner_steps_per_task: int | None = None
     reviewer_steps_per_task: int | None = None
     updates_per_episode: int | None = None  # gradient steps after each iteration; None: episode_length
@@ -571,9 +571,6 @@ def _check_relations(cfg: Config) -> None:
     if agent.lr_final is not None and not 0 < agent.lr_final <= agent.lr:
         raise ConfigError(f"setting 'agent.lr_final' must lie in (0, agent.lr={agent.lr}], got {agent.lr_final}; "
                           "leave it unset (null) for a constant lr")
-    if train.reviewer_steps_per_task is not None and train.learner_steps_per_task is None:
-        raise ConfigError("train.reviewer_steps_per_task needs train.learner_steps_per_task (separate budgets); "
-                          "without it both share train.steps_per_task")
     if agent.pets_elites > agent.pets_population:
         raise ConfigError(f"agent.pets_elites ({agent.pets_elites}) must not exceed agent.pets_population "
                           f"({agent.pets_population})")

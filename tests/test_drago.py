@@ -235,12 +235,12 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
 
 
 def test_separate_learner_and_reviewer_budgets(tmp_path):
+    """A reviewer budget alone makes the budgets separate: the learner keeps steps_per_task (400)."""
     import csv
 
     out = tmp_path / "run"
     assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
-                     "train.tensorboard=false", "env.tasks=[room1,room2]", "train.learner_steps_per_task=400",
-                     "train.reviewer_steps_per_task=200"]) == 0
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "train.reviewer_steps_per_task=200"]) == 0
     rows = list(csv.DictReader((out / "train.csv").open()))
     last = {r["task"]: r for r in rows}
     assert int(last["room1"]["learner_step"]) == 400 and int(last["room1"]["step"]) == 400

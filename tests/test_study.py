@@ -71,7 +71,10 @@ def test_default_plan_is_the_grid_study(tmp_path, capsys):
     assert "7 methods x 3 seeds = 21 runs of room1 -> room2 -> room3 -> room4" in text
     assert "runs:      21 to start, 0 to resume, 0 finished" in text
     assert "transfers: 84 to start" in text and "room1to3 after 4" in text and "20 learner episodes each" in text
-    assert "budget:    10,000 agent steps a task, learner and reviewer together" in text
+    # Every learner gets the same 10k steps a task; DRAGO's reviewer up to 5k more (the preset's separate budgets).
+    assert ("budget:    10,000 learner steps a task for every method, up to 5,000 more for DRAGO's reviewer; "
+            "the official code's shared accounting: train.learner_steps_per_task=null "
+            "train.reviewer_steps_per_task=null") in text
     for method in ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer"):
         for seed in (1, 2, 3):
             assert f"{method} seed{seed}" in text
@@ -120,7 +123,8 @@ def test_dry_run_of_a_short_sequence_leaves_out_the_cases_it_cannot_run(tmp_path
     separate = plan_study("smoke", ["drago"], [1], out=out, overrides=["train.learner_steps_per_task=400",
                                                                       "train.reviewer_steps_per_task=200"])
     assert separate.budget == ("400 learner steps a task for every method, up to 200 more for DRAGO's reviewer; "
-                               "the official code's shared accounting: train.learner_steps_per_task=null")
+                               "the official code's shared accounting: train.learner_steps_per_task=null "
+                               "train.reviewer_steps_per_task=null")
 
 
 def test_seeds_and_ranges():

@@ -34,8 +34,9 @@ class Budget:
     """How many agent steps a task may take (docs: Design, paper and code: budgets).
 
     Shared (the official code's accounting, the default): learner and reviewer steps count together
-    against ``steps_per_task``, so once a reviewer runs the learner gets half the steps. Separate: the
-    task ends after ``learner`` learner steps and the reviewer collects up to ``reviewer`` steps.
+    against ``steps_per_task``, so once a reviewer runs the learner gets half the steps. Separate (either of
+    ``learner_steps_per_task`` and ``reviewer_steps_per_task`` set): the task ends after ``learner`` learner
+    steps (``steps_per_task`` unless set) and the reviewer collects up to ``reviewer`` steps (as many unless set).
     """
 
     shared: int | None
@@ -45,10 +46,11 @@ class Budget:
     @classmethod
     def from_config(cls, cfg: Config) -> Budget:
         t = cfg.train
-        if t.learner_steps_per_task is None:
+        if t.learner_steps_per_task is None and t.reviewer_steps_per_task is None:
             return cls(shared=t.steps_per_task)
-        reviewer = t.reviewer_steps_per_task if t.reviewer_steps_per_task is not None else t.learner_steps_per_task
-        return cls(shared=None, learner=t.learner_steps_per_task, reviewer=reviewer)
+        learner = t.learner_steps_per_task if t.learner_steps_per_task is not None else t.steps_per_task
+        reviewer = t.reviewer_steps_per_task if t.reviewer_steps_per_task is not None else learner
+        return cls(shared=None, learner=learner, reviewer=reviewer)
 
     @property
     def max_steps(self) -> int:
@@ -69,9 +71,10 @@ class Budget:
         if self.shared is not None:
             return (f"{self.shared:,} agent steps a task, learner and reviewer together (the official code's "
                     "accounting: once DRAGO's reviewer runs, its learner gets half); separate budgets: "
-                    "train.learner_steps_per_task=N")
+                    "train.learner_steps_per_task=N and/or train.reviewer_steps_per_task=M")
         return (f"{self.learner:,} learner steps a task for every method, up to {self.reviewer:,} more for DRAGO's "
-                "reviewer; the official code's shared accounting: train.learner_steps_per_task=null")
+                "reviewer; the official code's shared accounting: train.learner_steps_per_task=null "
+                "train.reviewer_steps_per_task=null")
 
     def finished(self, task: TaskState) -> bool:
         if self.shared is not None:

@@ -256,7 +256,10 @@ def test_a_job_that_wrote_no_checkpoint_in_most_of_its_time_is_not_requeued(tmp_
 # ---------------------------------------------------------------------------------------------------
 # Against the one-node test cluster
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_smoke_study_runs_to_completion_through_slurm(slurm_env: SlurmCluster, reference, tmp_path):
+    """The uninterrupted path, two methods side by side (slow: the default suite's cancelled-job test below
+    walks the same path after its cancellation and checks the finished study the same way)."""
     c = slurm_env
     out = tmp_path / "smoke"
     t0 = time.monotonic()
@@ -304,6 +307,8 @@ def test_a_cancelled_job_finishes_after_the_same_command_with_identical_logs(slu
     out = tmp_path / "cancelled"
     first = drago(*study_argv(out), timeout=180, cwd=tmp_path)
     assert first.returncode == 0, first.stderr
+    assert "checked: the nodes see the study folder" in first.stdout
+    assert first.stdout.count("submitted job ") == 3  # the run, its transfer, the report
     run_job, transfer_job = job_of(out, "continual seed1"), job_of(out, "continual seed1 room1to2-after2")
     resume = out / RUN / "checkpoints" / "resume.pt"
     # In the middle: once a periodic checkpoint has been written, while the run trains on.
@@ -333,6 +338,17 @@ def test_a_cancelled_job_finishes_after_the_same_command_with_identical_logs(slu
     log = (out / "logs" / "continual-seed1.log").read_text()
     assert "drago: interrupted" in log and f"drago resume {out / RUN}" in log and "resumed at step" in log
     assert snapshot(out) == snapshot(reference)  # byte-identical train.csv and eval.csv, run and transfer
+    for name in ("report.html", "report.md", "transfers.csv", "transfers.md"):
+        assert (out / "report" / name).is_file(), name
+
+    done = drago(*study_argv(out, "--status"))
+    assert done.returncode == 0 and "2 done, 0 running, 0 queued, 0 failed, 0 to do" in done.stdout
+    # Once more: nothing to submit; the report is written here.
+    states = c.job_states()
+    last = drago(*study_argv(out), timeout=120)
+    assert last.returncode == 0, last.stderr
+    assert "submitted job" not in last.stdout and "every job is finished: writing the report here" in last.stdout
+    assert set(c.job_states()) == set(states)
 
 
 def test_a_second_command_while_the_jobs_are_queued_submits_nothing(slurm_env: SlurmCluster, tmp_path, capsys):

@@ -210,7 +210,7 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
     reference = tmp_path / "ref"
     # Two rooms: the crash comes in the second, where every piece of DRAGO's state is live.
     args = ["train", "smoke", "--method", "drago", "--no-progress", "train.tensorboard=false",
-            "env.tasks=[room1,room2]", "train.steps_per_task=800", "train.checkpoint_freq=200"]
+            "env.tasks=[room1,room2]", "train.steps_per_task=600", "train.checkpoint_freq=200"]
     assert cli.main([*args, "--out", str(reference)]) == 0
 
     crashed = tmp_path / "crashed"
@@ -220,14 +220,15 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
     def crash_in_task_two(self, task, u):
         if task.index == 1:
             calls["n"] += 1
-            if calls["n"] == 25:
+            if calls["n"] == 15:  # the last iteration of task 2 (updates 11-20), after its checkpoint at step 400
                 raise RuntimeError("simulated crash")
         return original(self, task, u)
 
     monkeypatch.setattr(drago_module.Drago, "gradient_step", crash_in_task_two)
     with pytest.raises(RuntimeError, match="simulated crash"):
         cli.main([*args, "--out", str(crashed)])
-    assert (crashed / "checkpoints" / "resume.pt").exists()
+    snapshot = load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")
+    assert snapshot["task_index"] == 1  # resumed inside task 2, with the reviewer and rehearsal state live
     monkeypatch.setattr(drago_module.Drago, "gradient_step", original)
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv"):

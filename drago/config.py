@@ -170,6 +170,10 @@ class MethodConfig:
     cost_coef: float = 0.5  # alpha, the weight of the current model's familiarity
     initial_threshold: float = 9.5  # theta of task 2 when the checkpoint has none
     threshold_momentum: float = 0.9  # theta_new <- m * theta_new + (1 - m) * prediction score
+    # The reviewer is paid against theta - threshold_offset (code form). 0: the code. theta tracks the score on
+    # the learner's own training batches, above the model's score over the room it learned (docs: Reproducing
+    # the paper, why the reviewer brings no room back), so r_old pays on few old transitions.
+    threshold_offset: float = 0.0
     pseudo_counts: bool = True  # count bonus in reviewer planning (code only, not in the paper)
     # -- EWC --
     ewc_coef: float = 100.0  # weight of the quadratic penalty on the world model

@@ -251,6 +251,21 @@ def test_separate_learner_and_reviewer_budgets(tmp_path):
     assert len(reviewer_rows) == 2
 
 
+def test_the_reviewer_is_paid_against_theta_less_the_offset(tmp_path):
+    """With an offset of 100 nats every transition scores far above theta - 100, so r_old = c = 1 and each
+    of the reviewer's 100 steps is paid 1 - 0.5 = 0.5: 50 an episode, what its reward sums to in train.csv."""
+    import csv
+
+    out = tmp_path / "run"
+    assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "method.threshold_offset=100"]) == 0
+    reviewer = [r for r in csv.DictReader((out / "train.csv").open()) if r["reviewer_episode_reward"] != ""]
+    assert reviewer and all(r["task"] == "room2" for r in reviewer)
+    for row in reviewer:
+        assert float(row["old_model_episode_reward"]) == pytest.approx(100.0, abs=1e-3)
+        assert float(row["reviewer_episode_reward"]) == pytest.approx(50.0, abs=1e-3)
+
+
 def test_shared_budget_halves_the_learner_steps_once_a_reviewer_runs(drago_run):
     import csv
 

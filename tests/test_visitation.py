@@ -4,6 +4,7 @@ DRAGO's reviewer is paid on every transition of the grid."""
 from __future__ import annotations
 
 import csv
+import shutil
 from collections import Counter
 
 import numpy as np
@@ -111,6 +112,15 @@ def test_what_the_reviewer_would_have_been_paid_under_the_papers_form_or_another
     np.testing.assert_allclose(shifted.old_term, sigmoid(4.0 * (coverage.score - 7.25)), atol=1e-4)
     with pytest.raises(ConfigError, match="valid: code, paper"):
         reviewer_pay_of_run(drago_run, variant="papr")
+
+
+def test_a_runs_threshold_offset_is_in_what_its_reviewer_is_paid(drago_run, tmp_path):
+    run = tmp_path / "offset"
+    shutil.copytree(drago_run, run)
+    config = run / "config.yaml"
+    config.write_text(config.read_text().replace("threshold_offset: 0.0", "threshold_offset: 2.5"))
+    saved = load_task_checkpoint(run / "checkpoints" / "task1_room1.pt").data["method"]["threshold"]
+    assert reviewer_pay_of_run(run)[0].threshold == pytest.approx(saved - 2.5)
 
 
 def test_only_methods_with_a_reviewers_reward_are_paid():

@@ -132,7 +132,7 @@ class Drago(ContinualMethod):
     def _intrinsic(self, obs, actions, next_obs):
         m = self.cfg.method
         return intrinsic_reward(self.old_world_model, self.world_model, obs, actions, next_obs,
-                                self.threshold, m.cost_coef, m.intrinsic_reward)
+                                self.threshold - m.threshold_offset, m.cost_coef, m.intrinsic_reward)
 
     # ---- one gradient iteration -----------------------------------------------------------------
     def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:

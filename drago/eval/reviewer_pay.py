@@ -41,7 +41,8 @@ class StagePay:
         stage: the stage whose world model is the old model (1-based).
         task: the task learned in that stage.
         next_task: the task whose reviewer is paid so.
-        threshold: θ, saved by the stage's checkpoint.
+        threshold: the θ the reviewer is paid against: the one saved by the stage's checkpoint, less the run's
+            ``method.threshold_offset``.
         old_term: (N,) r_old per transition of :func:`~drago.eval.coverage.grid_transitions`, in (0, 1).
         cost: (N,) c per transition (the current model is the old one when the task begins), in (0, 1).
         reward: (N,) r_old − α·c, what the reviewer plans for.
@@ -75,8 +76,8 @@ def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu", variant: str |
 
     ``variant`` and ``threshold`` ask "what would this reviewer have been paid" on the same checkpoints: the
     other form of the reward (``paper`` or ``code``, see
-    :func:`~drago.continual.generative.intrinsic_reward`) or another θ than the saved one. By default the
-    run's own form and each checkpoint's θ, i.e. what its reviewer was actually paid.
+    :func:`~drago.continual.generative.intrinsic_reward`) or another θ than the run's. By default the
+    run's own form and θ (each checkpoint's, less ``method.threshold_offset``): what its reviewer was paid.
 
     Raises:
         CoverageError: Not a grid run, or no task finished yet.
@@ -96,7 +97,10 @@ def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu", variant: str |
         if checkpoint.stage >= len(cfg.env.tasks):
             continue
         loaded = load_task_checkpoint(checkpoint.path, device)
-        theta = _saved_threshold(loaded.data, cfg.method.initial_threshold) if threshold is None else threshold
+        if threshold is None:
+            theta = _saved_threshold(loaded.data, cfg.method.initial_threshold) - cfg.method.threshold_offset
+        else:
+            theta = threshold
         model = loaded.world_model.eval()
         pay = intrinsic_reward(model, model, obs, actions, next_obs, theta, cfg.method.cost_coef, variant)
         old_term, cost, reward = (t.double().cpu().numpy() for t in (pay.old_reward, pay.cost, pay.reward))

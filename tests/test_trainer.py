@@ -5,6 +5,7 @@ One smoke run (four tasks of 400 agent steps) takes a few seconds; the module sh
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -97,6 +98,33 @@ def test_smoke_run_writes_every_output(reference):
     ckpt = reference / "checkpoints"
     assert sorted(p.name for p in ckpt.iterdir()) == sorted(p.name for p in task_checkpoints(reference))
     assert not list(ckpt.glob("*.tmp")) and not list(ckpt.glob(".*"))  # no temporary file, no resume.pt left
+
+
+@pytest.mark.parametrize("method", ["continual", "drago"])
+def test_the_progress_bar_ends_full_with_separate_budgets(method, tmp_path, monkeypatch):
+    """With separate budgets a task without a reviewer (every task of continual, DRAGO's first) ends before
+    the largest budget the bar started from; the bar still ends at its total."""
+    from tqdm import tqdm
+
+    from drago.training import trainer as trainer_module
+
+    bars = []
+
+    class RecordedBar(tqdm):  # drawn (into a string), as on a terminal
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**kwargs, "disable": False, "file": io.StringIO()})
+
+        def close(self):
+            if not self.disable:  # the first close; tqdm closes again when collected
+                bars.append((self.n, self.total))
+            super().close()
+
+    monkeypatch.setattr(trainer_module, "tqdm", RecordedBar)
+    out = tmp_path / method
+    assert cli.main(["train", "smoke", "--method", method, "--out", str(out), "train.tensorboard=false",
+                     "env.tasks=[room1,room2]", "train.reviewer_steps_per_task=200"]) == 0
+    steps = sum(t["steps"] for t in json.loads((out / "summary.json").read_text())["tasks"])
+    assert bars == [(steps, steps)]  # continual 400 + 400; drago 400 + 600 with its reviewer's 200
 
 
 def test_task_checkpoint_holds_the_world_model_and_no_training_state(reference):

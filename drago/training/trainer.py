@@ -235,6 +235,10 @@ class Trainer:
                 self._save_resume(task, env, time.perf_counter() - started, time.process_time() - cpu_started,
                                   last_eval_env, last_ckpt_env, last_eval)
 
+        # The bar counted each task at its largest budget; with separate budgets a task without a reviewer
+        # (every task of `continual`, DRAGO's first) ends sooner, and the bar would stop short of its end.
+        bar.total = max(bar.n, bar.total - (budget.max_steps - task.step))
+        bar.refresh()
         buffers = {"learner": task.buffer, **self.method.collected_buffers(task)}
         self.method.end_task(task)
         self._task_finished(index, learner, task.step, buffers)

@@ -16,7 +16,8 @@ from drago.eval.coverage import (
     GRID_DOMAIN,
     room_of,
 )
-from drago.training.rundir import CONFIG_FILE, TRANSFER_FOLDER, RunDirError, read_run_config, read_summary
+from drago.training.rundir import (CONFIG_FILE, RESOLVED_AT_START, TRANSFER_FOLDER, RunDirError, flat_settings,
+                                   read_run_config, read_summary)
 
 EVAL_FILE = "eval.csv"
 FRACTION_LABEL = "fraction of DP optimum"
@@ -171,19 +172,45 @@ def _method(run: ReportedRun) -> str:
     return f"{run.method} (learner only)" if run.is_transfer and run.cfg.transfer.learner_only else run.method
 
 
+#: A continual run's budget: runs of one method with different budgets are reported apart (a transfer's
+#: budget is its case's, see :attr:`ReportedRun.case`).
+BUDGET_SETTINGS = ("train.steps_per_task", "train.learner_steps_per_task", "train.reviewer_steps_per_task")
+
+
+def _variant_settings(run: ReportedRun) -> dict[str, Any]:
+    """The settings that make a run of a method another variant of it: the method's and the agent's own, and a
+    continual run's budget; not those a run resolves for its machine (precision, compile)."""
+    flat = flat_settings(run.cfg)
+    return {key: value for key, value in flat.items()
+            if (key.startswith(("method.", "agent.")) or (key in BUDGET_SETTINGS and not run.is_transfer))
+            and key not in RESOLVED_AT_START and key != "agent.kind"}
+
+
+def _setting_text(key: str, value: Any) -> str:
+    shown = "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+    return f"{key}={shown}"
+
+
 def label_runs(runs: list[ReportedRun]) -> dict[str, list[ReportedRun]]:
-    """Group runs by method, in order of first appearance; a method run under several presets or with
-    several agents (``agent.kind``) is split by them, since their budgets and models differ and averaging
-    them would mean nothing."""
+    """Group runs by method, in order of first appearance, and split a method's runs wherever averaging them
+    would mean nothing: by preset and by agent (``agent.kind``), and within one preset and agent by any
+    setting of the method, the agent or the budget in which its runs differ, each shown as ``key=value``
+    (``drago-no-rehearsal [method.threshold_offset=3.0]``)."""
     variants: dict[str, set[tuple[str, str]]] = {}
+    settings: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for run in runs:
         variants.setdefault(_method(run), set()).add((run.cfg.preset, run.cfg.agent.kind))
+        settings.setdefault((_method(run), run.cfg.preset, run.cfg.agent.kind), []).append(_variant_settings(run))
     groups: dict[str, list[ReportedRun]] = {}
     for run in runs:
         method = _method(run)
         seen = variants[method]
         parts = [part for part, varies in ((run.cfg.preset, len({p for p, _ in seen}) > 1),
                                            (run.cfg.agent.kind, len({k for _, k in seen}) > 1)) if varies]
+        siblings = settings[(method, run.cfg.preset, run.cfg.agent.kind)]
+        own = _variant_settings(run)
+        parts += [_setting_text(key, value) for key, value in own.items()
+                  if any(other.get(key) != value for other in siblings)]
         run.label = f"{method} [{', '.join(parts)}]" if parts else method
         groups.setdefault(run.label, []).append(run)
     return groups

@@ -254,11 +254,15 @@ def config_diffs(existing: Config, wanted: Config, ignore: Sequence[str] = SETTI
     """``key: value there, value here`` for every setting in which two configs differ (values compared
     after a round trip through a run's ``config.yaml``, so a tuple and the list it is saved as agree; an
     ``auto`` here agrees with the value a run resolved it to, see :data:`RESOLVED_AT_START`)."""
-    there = _flat(Config.from_dict(existing.to_dict()).to_dict())
-    here = _flat(Config.from_dict(wanted.to_dict()).to_dict())
+    there, here = flat_settings(existing), flat_settings(wanted)
     return [f"{key}: {there.get(key)!r} there, {here.get(key)!r} here" for key in dict.fromkeys([*here, *there])
             if key not in ignore and there.get(key) != here.get(key)
             and not (key in RESOLVED_AT_START and here.get(key) == "auto")]
+
+
+def flat_settings(cfg: Config) -> dict[str, Any]:
+    """``{"section.key": value}`` of every setting, as a run's ``config.yaml`` stores it (tuples as lists)."""
+    return _flat(Config.from_dict(cfg.to_dict()).to_dict())
 
 
 def _flat(data: dict[str, Any]) -> dict[str, Any]:

@@ -17,6 +17,7 @@ from torch import nn
 
 from drago.agent.losses import LOG_EPS, prediction_error
 from drago.agent.networks import WorldModel
+from drago.config import INTRINSIC_REWARDS
 
 
 class VAE(nn.Module):
@@ -103,7 +104,7 @@ def intrinsic_reward(old_world_model: WorldModel, world_model: WorldModel, obs: 
         old_reward = torch.sigmoid(-torch.log((old_pred - target).abs().mean(-1) + LOG_EPS))
         cost = torch.sigmoid(-torch.log((cur_pred - target).abs().mean(-1) + LOG_EPS))
     else:
-        raise ValueError(f"unknown intrinsic reward variant '{variant}'; valid: code, paper")
+        raise ValueError(f"unknown intrinsic reward variant '{variant}'; valid: {', '.join(INTRINSIC_REWARDS)}")
     return IntrinsicReward(old_reward - cost_coef * cost, old_reward, cost)
 
 

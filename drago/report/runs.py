@@ -197,20 +197,20 @@ def label_runs(runs: list[ReportedRun]) -> dict[str, list[ReportedRun]]:
     setting of the method, the agent or the budget in which its runs differ, each shown as ``key=value``
     (``drago-no-rehearsal [method.threshold_offset=3.0]``)."""
     variants: dict[str, set[tuple[str, str]]] = {}
-    settings: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
-    for run in runs:
+    own = [_variant_settings(run) for run in runs]
+    siblings: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+    for run, settings in zip(runs, own):
         variants.setdefault(_method(run), set()).add((run.cfg.preset, run.cfg.agent.kind))
-        settings.setdefault((_method(run), run.cfg.preset, run.cfg.agent.kind), []).append(_variant_settings(run))
+        siblings.setdefault((_method(run), run.cfg.preset, run.cfg.agent.kind), []).append(settings)
     groups: dict[str, list[ReportedRun]] = {}
-    for run in runs:
+    for run, settings in zip(runs, own):
         method = _method(run)
         seen = variants[method]
         parts = [part for part, varies in ((run.cfg.preset, len({p for p, _ in seen}) > 1),
                                            (run.cfg.agent.kind, len({k for _, k in seen}) > 1)) if varies]
-        siblings = settings[(method, run.cfg.preset, run.cfg.agent.kind)]
-        own = _variant_settings(run)
-        parts += [_setting_text(key, value) for key, value in own.items()
-                  if any(other.get(key) != value for other in siblings)]
+        others = siblings[(method, run.cfg.preset, run.cfg.agent.kind)]
+        parts += [_setting_text(key, value) for key, value in settings.items()
+                  if any(other.get(key) != value for other in others)]
         run.label = f"{method} [{', '.join(parts)}]" if parts else method
         groups.setdefault(run.label, []).append(run)
     return groups

@@ -16,9 +16,15 @@ from drago.report.content import Table
 from drago.report.runs import Case, ReportedRun, as_number, case_name
 from drago.report.tables import DIGITS
 
-__all__ = ["PAPER_FEW_SHOT", "PAPER_TRAINING_RETURNS", "leader", "paper_tables", "paper_training_table"]
+__all__ = ["LEARNED_FRACTION", "PAPER_FEW_SHOT", "PAPER_TRAINING_RETURNS", "leader", "paper_tables", "paper_training_table"]
 
 Cell = tuple[float, float]  # mean, std over the paper's seeds
+
+#: Below this share of the task's DP optimum a method has not learned the case: the grid learners' own
+#: exploring episodes average about 1% of it on the test tasks before they have found the goal, so a
+#: leader among returns this low says who wandered luckier, not whose model transfers (docs: Reproducing
+#: the paper, the PETS study).
+LEARNED_FRACTION = 0.05
 
 _TABLE1: dict[str, dict[str, Cell]] = {  # paper Table 1, and the curiosity column of its appendix (cheetah)
     "jump2run": {"drago": (106.78, 32.01), "curiosity": (88.36, 25.81), "ewc": (54.72, 62.72),
@@ -87,12 +93,13 @@ def paper_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
     """The paper's few-shot numbers beside the transfers' (one row per case and method), and per case the
     leader in the paper and here, over the methods both have; nothing when no case has a paper number.
 
-    ``few_shot`` maps a transfer directory (as a string) to its score ``{"return": ...}`` at equal learner
-    episodes, the paper's reading.
+    ``few_shot`` maps a transfer directory (as a string) to its score ``{"return": ..., "fraction_of_optimal":
+    ...}`` at equal learner episodes, the paper's reading (the fraction where the task has a known optimum).
     """
     rows, verdicts = [], []
     for case in cases:
         here: dict[str, Summary] = {}
+        fractions: dict[str, Summary] = {}
         cells: dict[str, Cell] = {}
         for label, runs in tgroups.items():
             mine = [run for run in runs if run.case == case]
@@ -100,15 +107,22 @@ def paper_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
             method = mine[0].method if mine else None
             if paper is None or method not in paper:
                 continue
-            here[label] = summarize([as_number(few_shot.get(str(run.path), {}).get("return")) for run in mine])
+            scores = [few_shot.get(str(run.path), {}) for run in mine]
+            here[label] = summarize([as_number(score.get("return")) for score in scores])
+            fractions[label] = summarize([as_number(score.get("fraction_of_optimal")) for score in scores])
             cells[label] = paper[method]
             mean, std = paper[method]
             rows.append((case_name(case), label, f"{mean:.2f} ± {std:.2f}", here[label].format(DIGITS), str(here[label].n)))
         compared = [label for label in here if here[label].n > 0]
         if len(compared) >= 2:
-            best, separates = leader({label: here[label] for label in compared})
+            if all(fractions[label].n == here[label].n and fractions[label].mean < LEARNED_FRACTION
+                   for label in compared):
+                best, separates = f"none: every mean under {LEARNED_FRACTION:.0%} of the optimum", "–"
+            else:
+                best, flag = leader({label: here[label] for label in compared})
+                separates = {True: "yes", False: "no", None: "one seed"}[flag]
             verdicts.append((case_name(case), ", ".join(compared), _paper_leader(cells, compared), best,
-                             {True: "yes", False: "no", None: "one seed"}[separates]))
+                             separates))
     if not rows:
         return []
     tables = [Table("paper-few-shot", "Transfer beside the paper",
@@ -123,7 +137,9 @@ def paper_tables(tgroups: dict[str, list[ReportedRun]], cases: list[Case],
         tables.append(Table("paper-leaders", "Who leads, in the paper and here",
                             "Per case, over the methods both the paper and this report have: the method with the "
                             "highest mean return in the paper and here, and whether the leader's 95% CI here lies "
-                            "above every other method's CI (\"one seed\": some method has a single seed, no CI).",
+                            "above every other method's CI (\"one seed\": some method has a single seed, no CI). "
+                            f"No leader where every method's mean is under {LEARNED_FRACTION:.0%} of the task's DP "
+                            "optimum: none has learned the case.",
                             ("case", "methods", "paper's leader", "leader here", "CI separates"), verdicts))
     return tables
 

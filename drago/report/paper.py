@@ -20,10 +20,10 @@ __all__ = ["LEARNED_FRACTION", "PAPER_FEW_SHOT", "PAPER_TRAINING_RETURNS", "lead
 
 Cell = tuple[float, float]  # mean, std over the paper's seeds
 
-#: Below this share of the task's DP optimum a method has not learned the case: the grid learners' own
-#: exploring episodes average about 1% of it on the test tasks before they have found the goal, so a
-#: leader among returns this low says who wandered luckier, not whose model transfers (docs: Reproducing
-#: the paper, the PETS study).
+#: Below this share of the task's DP optimum a method has not learned the case: on the grid's test tasks a
+#: learner's own exploring episodes, before its planner has found the goal, average up to a few percent of
+#: it, so a leader among returns this low says who wandered luckier, not whose model transfers (docs:
+#: Reproducing the paper, the PETS study).
 LEARNED_FRACTION = 0.05
 
 _TABLE1: dict[str, dict[str, Cell]] = {  # paper Table 1, and the curiosity column of its appendix (cheetah)

@@ -16,7 +16,8 @@ from drago.report.content import Table
 from drago.report.runs import Case, ReportedRun, as_number, case_name
 from drago.report.tables import DIGITS
 
-__all__ = ["LEARNED_FRACTION", "PAPER_FEW_SHOT", "PAPER_TRAINING_RETURNS", "leader", "paper_tables", "paper_training_table"]
+__all__ = ["LEARNED_FRACTION", "PAPER_FEW_SHOT", "PAPER_TRAINING_RETURNS", "leader", "paper_tables",
+           "paper_training_table"]
 
 Cell = tuple[float, float]  # mean, std over the paper's seeds
 

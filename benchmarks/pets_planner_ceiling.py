@@ -23,21 +23,24 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from drago.agent.factory import pets_config
-from drago.agent.pets import cem
-from drago.config import load_config
-from drago.envs import GRID_TASKS, make_env, task_optimum
-from drago.envs.grid_reward import true_reward
-from drago.envs.tasks import get_grid_task
-from drago.eval.zero_shot import true_dynamics
-from drago.training.rundir import write_rows_csv
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from zero_shot_ceiling import commit  # noqa: E402
+
+from drago.agent.factory import pets_config  # noqa: E402
+from drago.agent.pets import cem  # noqa: E402
+from drago.config import load_config  # noqa: E402
+from drago.envs import GRID_TASKS, make_env, task_optimum  # noqa: E402
+from drago.envs.grid_reward import true_reward  # noqa: E402
+from drago.envs.tasks import get_grid_task  # noqa: E402
+from drago.eval.zero_shot import true_dynamics  # noqa: E402
+from drago.training.rundir import write_rows_csv  # noqa: E402
 
 OBS_DIM = ACTION_DIM = 3
 EPISODE_LENGTH = 100
@@ -65,6 +68,7 @@ def play(task_name: str, plan, members: int, episodes: int, seed: int) -> list[f
     task = get_grid_task(task_name, dense=True)
     model = TrueDynamics(members)
     env = make_env("minigrid", task_name, dense_reward=True)
+    reward_of = lambda obs, action, next_obs: true_reward(task, obs, action, next_obs)  # noqa: E731
     returns = []
     for e in range(episodes):
         generator = torch.Generator().manual_seed(seed * 1000 + e)
@@ -74,7 +78,7 @@ def play(task_name: str, plan, members: int, episodes: int, seed: int) -> list[f
         for _ in range(EPISODE_LENGTH):
             action = cem(model, torch.as_tensor(obs, dtype=torch.float32), plan, discrete=True, eval_mode=True,
                          generator=generator, state_bounds=(-1.0, 1.0),
-                         known_reward=lambda o, a, n: true_reward(task, o, a, n)).action
+                         known_reward=reward_of).action
             obs, reward, terminated, truncated, _ = env.step(action.numpy())
             total += float(reward)
             if terminated or truncated:
@@ -94,8 +98,9 @@ def main() -> None:
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="planner settings, e.g. agent.pets_horizon=25")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    print(f"{datetime.date.today()} commit {commit or '?'}: {' '.join(sys.argv)}")
+    print(f"date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}")
+    print(f"command: {' '.join([Path(sys.executable).name, *sys.argv])}")
+    print(f"commit: {commit()}")
 
     cfg = load_config(args.preset, args.overrides, method="continual")
     settings = pets_config(cfg)

@@ -31,7 +31,7 @@ from drago.envs.fourrooms import (
     FourRoomsEnv,
     traversable_cells,
 )
-from drago.envs.tasks import get_grid_task
+from drago.envs.tasks import GRID_TASKS, get_grid_task
 from drago.training.rundir import RunCheckpoint, RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
 
@@ -125,6 +125,15 @@ def room_of(cell: tuple[int, int]) -> int | None:
         if x_lo <= x <= x_hi and y_lo <= y <= y_hi:
             return room
     return None
+
+
+def task_room(name: str) -> str | None:
+    """The room a task lives in (start and goal in the same room), else None (e.g. transfer tasks)."""
+    task = GRID_TASKS.get(name)
+    if task is None:
+        return None
+    start, goal = room_of(task.start), room_of(task.goal)
+    return f"room{start}" if start is not None and start == goal else None
 
 
 def room_group(cell: tuple[int, int]) -> str:

@@ -12,7 +12,7 @@ from drago.eval.coverage import (
 from drago.report.content import Figure, Findings, Notes, Section
 from drago.report.figures import CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, curves_png, heatmap_figure, transfer_png
 from drago.report.render import REPORT_HTML, REPORT_MD, render_html, render_markdown
-from drago.report.runs import ReportError, find_run_dirs, find_transfer_dirs, label_runs, read_run, task_order
+from drago.report.runs import ReportError, find_transfer_dirs, label_runs, opened_runs, read_run, task_order
 from drago.report.tables import (
     coverage_matrix,
     coverage_rows,
@@ -36,17 +36,18 @@ from drago.report.reviewer_pay import (
 from drago.report.visitation import VISITATION_PNG, visitation_section
 from drago.report.zero_shot import zero_shot_matrix_of, zero_shot_rows, zero_shot_table
 from drago.report.transfers import relearning_metrics, training_table, transfer_block, transfer_gaps, transfer_tables
-from drago.training.rundir import CONFIG_FILE
+from drago.training.records import is_record_view, record_view_meta
+from drago.training.rundir import CONFIG_FILE, TRANSFER_FOLDER
 
 
 def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[Path, Path]:
     """Write ``report.html`` (self-contained) and ``report.md`` (with PNG figures) for ``run_dirs``.
 
     Args:
-        run_dirs: ReportedRun directories, or folders holding run directories (see :func:`find_run_dirs`).
-            Any mix of methods and seeds, finished or not. The transfer runs each run holds
-            (``RUN_DIR/transfer/*``) are reported too; a transfer run given directly is one of them,
-            never a continual run of its method.
+        run_dirs: Run directories, folders holding run directories (see :func:`find_run_dirs`), records
+            (``*.json.gz``) or folders holding records. Any mix of methods and seeds, finished or not. The
+            transfer runs each run holds (``RUN_DIR/transfer/*``) are reported too; a transfer run given
+            directly is one of them, never a continual run of its method.
         out_dir: Output folder, created if needed; nothing is written anywhere else.
 
     Returns:
@@ -54,10 +55,16 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
 
     Raises:
         ReportError: A path without runs, or an unreadable run file (one-line message).
+        drago.training.records.RecordError: A corrupt record, or one of another format version.
         drago.config.ConfigError: An invalid ``config.yaml``.
         drago.training.checkpoint.CheckpointError: A corrupt checkpoint.
     """
-    given = [read_run(path) for path in find_run_dirs(run_dirs)]
+    with opened_runs(run_dirs) as found:
+        return _build_report(found, out_dir)
+
+
+def _build_report(found: list[tuple[Path, str]], out_dir: str | Path) -> tuple[Path, Path]:
+    given = [read_run(path, shown) for path, shown in found]
     runs = [run for run in given if not run.is_transfer]
     transfers = [run for run in given if run.is_transfer]
     findings = Findings()
@@ -67,11 +74,12 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
             if path.resolve() in seen:
                 continue
             seen.add(path.resolve())
-            found = read_run(path)
-            if found.is_transfer:
-                transfers.append(found)
+            shown = str(path) if run.shown == str(run.path) else f"{run.shown}: {TRANSFER_FOLDER}/{path.name}"
+            transfer = read_run(path, shown)
+            if transfer.is_transfer:
+                transfers.append(transfer)
             else:
-                findings.missing.append(f"{path}: not a transfer run (no transfer.checkpoint in its "
+                findings.missing.append(f"{shown}: not a transfer run (no transfer.checkpoint in its "
                                         f"{CONFIG_FILE}); left out")
     groups = label_runs(runs)
     found_groups = label_runs(transfers)
@@ -145,7 +153,15 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         sections.append(Notes("notes", "Notes", "How the numbers above were obtained.", findings.notes))
 
     seeds = ", ".join(f"{label}: {len(r)} run{'s' if len(r) != 1 else ''}" for label, r in groups.items())
-    meta = f"Generated {datetime.now().strftime('%Y-%m-%d %H:%M')} from {len(runs)} run directories ({seeds or 'none'})"
+    recorded = [record_view_meta(run.path).get("provenance") or {} for run in runs if is_record_view(run.path)]
+    if recorded and len(recorded) == len(runs):
+        # Built from records alone: the same records give the same page, wherever and whenever it is built.
+        latest = max(recorded, key=lambda p: str(p.get("recorded")))
+        meta = (f"Built from {len(runs)} records ({seeds}), the latest recorded {latest.get('recorded', '?')} "
+                f"by drago {latest.get('drago', '?')} at commit {str(latest.get('commit') or 'unknown')[:12]}")
+    else:
+        meta = (f"Generated {datetime.now().strftime('%Y-%m-%d %H:%M')} from {len(runs)} run directories "
+                f"({seeds or 'none'})")
     meta += f" and {len(transfers)} transfer run{'s' * (len(transfers) != 1)}." if transfers else "."
     title = "DRAGO report"
     out = Path(out_dir)

@@ -19,6 +19,7 @@ import numpy as np
 from drago.envs.fourrooms import SIZE, is_traversable
 from drago.envs.tasks import GRID_TASKS
 from drago.eval.coverage import GRID_DOMAIN, cell_scores, grid_coverage, grid_world_models, run_checkpoints
+from drago.eval.unit import read_cells
 from drago.training.rundir import RunCheckpoint
 
 __all__ = ["StageMaps", "heatmap_png", "run_cell_scores"]
@@ -42,12 +43,16 @@ class StageMaps(NamedTuple):
 
 
 def run_cell_scores(run_dir: str | Path, device: str = "cpu") -> list[tuple[RunCheckpoint, np.ndarray]]:
-    """Per-cell score map of the world model after each finished task of a grid run.
+    """Per-cell score map of the world model after each finished task of a grid run (a record view's are
+    read from its file).
 
     Raises:
         CoverageError: Not a grid run, or no task finished yet (see :func:`run_checkpoints`).
         drago.training.checkpoint.CheckpointError: A corrupt or mismatched checkpoint.
     """
+    recorded = read_cells(run_dir)
+    if recorded is not None:
+        return recorded
     _, checkpoints = run_checkpoints(run_dir)
     return [(checkpoint, cell_scores(grid_coverage(predictor).score)) for checkpoint, predictor in
             grid_world_models(checkpoints, device, f"heatmaps are defined for the '{GRID_DOMAIN}' grid only")]

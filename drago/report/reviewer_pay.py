@@ -8,13 +8,13 @@ from __future__ import annotations
 import csv
 import math
 
-import numpy as np
 
-from drago.eval.coverage import ALL, GROUPS, CoverageError, cell_scores, transition_groups
-from drago.eval.reviewer_pay import PAID, StagePay, reviewer_pay_of_run
+from drago.eval.coverage import ALL, GROUPS, CoverageError
+from drago.eval.reviewer_pay import PAID
+from drago.eval.unit import PaySummary, read_reviewer_pay
 from drago.report.content import Figure, Table
 from drago.report.figures import Panel, panels_png
-from drago.report.runs import ReportedRun, as_number, task_room
+from drago.report.runs import ReportedRun, as_number
 from drago.report.tables import format_summary
 from drago.training.runs import LOG_FILES
 
@@ -31,24 +31,17 @@ ROOMS = tuple(group for group in GROUPS if group != ALL)
 PAY_LABEL = "reviewer's reward r_old − α·c at the task's start\nmean over 4 headings × 3 actions"
 
 
-def _pays(groups: dict[str, list[ReportedRun]]) -> dict[str, list[list[StagePay]]]:
-    found: dict[str, list[list[StagePay]]] = {}
+def _pays(groups: dict[str, list[ReportedRun]]) -> dict[str, list[list[PaySummary]]]:
+    found: dict[str, list[list[PaySummary]]] = {}
     for label, runs in groups.items():
         for run in runs:
             try:
-                pays = reviewer_pay_of_run(run.path)
+                pays = read_reviewer_pay(run.path)
             except CoverageError:
                 continue  # not a grid run, or no task finished: reported elsewhere
             if pays:
                 found.setdefault(label, []).append(pays)
     return found
-
-
-def _old_rooms_paid(pay: StagePay, sequence: list[str], groups: np.ndarray) -> float:
-    """Share of the transitions in the rooms of the tasks up to ``pay.stage`` whose old-model term pays."""
-    rooms = {task_room(task) for task in sequence[:pay.stage]} - {None}
-    mask = np.isin(groups, sorted(rooms))
-    return float((pay.old_term[mask] > PAID).mean()) if mask.any() else float("nan")
 
 
 def reviewer_pay_section(groups: dict[str, list[ReportedRun]]) -> list[Table | Figure]:
@@ -58,8 +51,6 @@ def reviewer_pay_section(groups: dict[str, list[ReportedRun]]) -> list[Table | F
     found = _pays(groups)
     if not found:
         return []
-    row_groups = transition_groups()
-    sequences = {label: list(runs[0].cfg.env.tasks) for label, runs in groups.items()}
     rows = []
     panels: dict[str, dict[int, StageMaps]] = {}
     for label, runs in found.items():
@@ -68,10 +59,10 @@ def reviewer_pay_section(groups: dict[str, list[ReportedRun]]) -> list[Table | F
             first = at_stage[0]
             rows.append((label, f"{stage}: {first.task}", first.next_task, str(len(at_stage)),
                          format_summary([pay.threshold for pay in at_stage])[0],
-                         format_summary([_old_rooms_paid(pay, sequences[label], row_groups) for pay in at_stage])[0],
+                         format_summary([pay.old_rooms_paid for pay in at_stage])[0],
                          *(format_summary([pay.rooms[room]["reward"] for pay in at_stage])[0] for room in ROOMS)))
             panels.setdefault(label, {})[stage + 1] = StageMaps(first.next_task,
-                                                                [cell_scores(pay.reward) for pay in at_stage])
+                                                                [pay.reward_cells for pay in at_stage])
     table = Table("reviewer-pay", "What the reviewer is paid",
                   "The intrinsic reward r = r_old − α·c of every grid transition when the next task begins (the "
                   "current model is then the old one), from each stage's checkpoint and its θ (paper §3.2). "

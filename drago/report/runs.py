@@ -2,20 +2,20 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
-from collections.abc import Iterable, Sequence
+import tempfile
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from drago.config import Config
 from drago.envs.tasks import GRID_TASKS
-from drago.eval.coverage import (
-    GRID_DOMAIN,
-    room_of,
-)
+from drago.eval.coverage import GRID_DOMAIN
+from drago.training.records import RECORD_SUFFIX, find_records, materialize, read_record
 from drago.training.rundir import (CONFIG_FILE, RESOLVED_AT_START, TRANSFER_FOLDER, RunDirError, flat_settings,
                                    read_run_config, read_summary)
 
@@ -63,6 +63,34 @@ def find_run_dirs(paths: Iterable[str | Path]) -> list[Path]:
     return found
 
 
+@contextlib.contextmanager
+def opened_runs(paths: Iterable[str | Path]) -> Iterator[list[tuple[Path, str]]]:
+    """``(run directory, how to name it)`` for every run that ``paths`` name, run directories and records
+    alike: a record (``*.json.gz``, or a folder holding records) is materialized into a temporary record view
+    that lives as long as the ``with`` block and is named by its record file.
+
+    Raises:
+        ReportError: a path without runs or records (see :func:`find_run_dirs`).
+        drago.training.records.RecordError: a corrupt record or one of another format version (one line).
+    """
+    paths = [Path(p) for p in paths]
+    with tempfile.TemporaryDirectory(prefix="drago-records-") as scratch:
+        found: list[tuple[Path, str]] = []
+        for path in paths:
+            records = find_records(path) if path.exists() else []
+            if path.is_file() and not path.name.endswith(RECORD_SUFFIX):
+                raise ReportError(f"{path} is neither a drago run directory (no {CONFIG_FILE}) nor a record (*{RECORD_SUFFIX})")
+            if records and not (path / CONFIG_FILE).is_file():
+                for record_path in records:
+                    view = materialize(read_record(record_path), Path(scratch) / f"{len(found)}")
+                    found.append((view, str(record_path)))
+            else:
+                found.extend((run_dir, str(run_dir)) for run_dir in find_run_dirs([path]))
+        if not found:
+            raise ReportError("no run directories given")
+        yield found
+
+
 def find_transfer_dirs(run_dir: Path) -> list[Path]:
     """The transfer runs a run directory holds (``RUN_DIR/transfer/*/config.yaml``), in sorted order."""
     return sorted(config.parent for config in (Path(run_dir) / TRANSFER_FOLDER).glob(f"*/{CONFIG_FILE}"))
@@ -78,6 +106,7 @@ class ReportedRun:
         summary: ``summary.json``, or None before the first task finished.
         eval_rows: Rows of ``eval.csv`` (empty if absent).
         label: The method group the run is reported under (set once all runs are known).
+        shown: How the report names the run: its directory, or the record it was read from.
     """
 
     path: Path
@@ -85,6 +114,10 @@ class ReportedRun:
     summary: dict[str, Any] | None
     eval_rows: list[dict[str, str]]
     label: str = ""
+    shown: str = ""
+
+    def __post_init__(self) -> None:
+        self.shown = self.shown or str(self.path)
 
     @property
     def method(self) -> str:
@@ -142,8 +175,8 @@ def _read_eval(path: Path, required: Sequence[str] = EVAL_COLUMNS) -> list[dict[
     return rows
 
 
-def read_run(path: str | Path) -> ReportedRun:
-    """Read one run directory.
+def read_run(path: str | Path, shown: str = "") -> ReportedRun:
+    """Read one run directory (``shown``: how the report names it; default its path).
 
     Raises:
         ReportError: No ``config.yaml``, or an unreadable summary or eval file.
@@ -157,7 +190,7 @@ def read_run(path: str | Path) -> ReportedRun:
     # DeepMind Control tasks have no known optimum, so their eval.csv has no fraction_of_optimal.
     required = EVAL_COLUMNS if cfg.env.domain == GRID_DOMAIN else EVAL_COLUMNS[:2]
     return ReportedRun(path=path, cfg=cfg, summary=read_summary(path, ReportError),
-                       eval_rows=_read_eval(path, required))
+                       eval_rows=_read_eval(path, required), shown=shown)
 
 
 def as_number(value: Any) -> float:
@@ -221,15 +254,6 @@ def task_order(runs: Sequence[ReportedRun]) -> list[str]:
     for run in runs:
         order.extend(t for t in run.planned if t not in order)
     return order
-
-
-def task_room(name: str) -> str | None:
-    """The room a task lives in (start and goal in the same room), else None (e.g. transfer tasks)."""
-    task = GRID_TASKS.get(name)
-    if task is None:
-        return None
-    start, goal = room_of(task.start), room_of(task.goal)
-    return f"room{start}" if start is not None and start == goal else None
 
 
 Case = tuple[str, int]

@@ -16,11 +16,13 @@ from drago.eval.coverage import (
     CoverageError,
     coverage_of_run,
     run_checkpoints,
+    task_room,
 )
 from drago.eval.metrics import continual_metrics, cw_forward_transfer
 from drago.eval.stats import summarize
 from drago.report.content import Findings, Table
-from drago.report.runs import EVAL_FILE, ReportedRun, as_number, quantity_of, task_room
+from drago.report.runs import EVAL_FILE, ReportedRun, as_number, quantity_of
+from drago.training.records import is_record_view
 from drago.training.rundir import SUMMARY_FILE
 
 DIGITS = 2
@@ -54,7 +56,7 @@ def runs_table(groups: dict[str, list[ReportedRun]]) -> Table:
             cpu = sum(float(t.get("cpu_time_s", 0.0)) for t in tasks)
             rows.append((label, str(run.seed), run.cfg.preset, "yes" if run.complete else "no",
                          f"{len(run.finished)}/{len(run.planned)}", f"{learner:,}", f"{total:,}", _wall_time(wall),
-                         _wall_time(cpu) if cpu else "–", str(run.path)))
+                         _wall_time(cpu) if cpu else "–", run.shown))
     return Table("runs", "Runs", "One row per run directory, summed over its finished tasks: the learner's env "
                  "steps, all env steps (the learner's and, for DRAGO, its reviewer's), wall time, and CPU time "
                  "(all threads; unlike wall time, it does not depend on what else the machine was doing).",
@@ -123,7 +125,7 @@ def forward_transfer_table(groups: dict[str, list[ReportedRun]], tasks: list[str
                     transfer[task] = cw_forward_transfer([curve[x] for x in steps], [ref[task][x] for x in steps],
                                                          ceiling)
                 except ValueError as err:
-                    findings.notes.append(f"{run.path}: no forward transfer on {task} ({err})")
+                    findings.notes.append(f"{run.shown}: no forward transfer on {task} ({err})")
             if transfer:
                 per_run.append(transfer)
         if per_run:
@@ -148,6 +150,11 @@ def coverage_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
     """The run's coverage rows: its coverage.csv when it matches its checkpoints, else computed."""
     if run.cfg.env.domain != GRID_DOMAIN:
         return []  # its retention matrix comes from held-out sets instead
+    if is_record_view(run.path):
+        rows = _read_coverage(run.path / COVERAGE_FILE)
+        if rows is None:
+            findings.missing.append(f"{run.shown}: its record has no readable {COVERAGE_FILE}, so no coverage")
+        return rows or []
     try:
         _, checkpoints = run_checkpoints(run.path)
     except CoverageError:
@@ -155,20 +162,28 @@ def coverage_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
     stages = {c.stage for c in checkpoints}
     file = run.path / COVERAGE_FILE
     if file.is_file():
-        try:
-            with file.open(newline="") as handle:
-                rows = [dict(r, stage=int(r["stage"]), accuracy=as_number(r["accuracy"]), score=as_number(r["score"]))
-                        for r in csv.DictReader(handle)]
-            newest = max(c.path.stat().st_mtime for c in checkpoints)
-            if {r["stage"] for r in rows} == stages and file.stat().st_mtime >= newest:
-                return rows
-            why = "its coverage.csv is older than or does not match its checkpoints"
-        except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+        rows = _read_coverage(file)
+        if rows is None:
             why = "its coverage.csv is unreadable"
+        elif {r["stage"] for r in rows} == stages and file.stat().st_mtime >= max(c.path.stat().st_mtime
+                                                                                  for c in checkpoints):
+            return rows
+        else:
+            why = "its coverage.csv is older than or does not match its checkpoints"
     else:
         why = "it has no coverage.csv"
-    findings.notes.append(f"{run.path}: coverage computed from the checkpoints ({why}); nothing was written")
+    findings.notes.append(f"{run.shown}: coverage computed from the checkpoints ({why}); nothing was written")
     return coverage_of_run(run.path)
+
+
+def _read_coverage(file: Path) -> list[dict[str, Any]] | None:
+    """A coverage.csv's rows with numbers as numbers, or None if it is unreadable."""
+    try:
+        with file.open(newline="") as handle:
+            return [dict(r, stage=int(r["stage"]), accuracy=as_number(r["accuracy"]), score=as_number(r["score"]))
+                    for r in csv.DictReader(handle)]
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+        return None
 
 
 def _accuracy(rows: list[dict[str, Any]]) -> dict[tuple[int, str], float]:
@@ -199,14 +214,14 @@ def coverage_matrix(run: ReportedRun, rows: list[dict[str, Any]], findings: Find
         return []
     rooms = [task_room(task) for task in run.planned]
     if None in rooms:
-        findings.missing.append(f"{run.path}: continual metrics need one room per task; "
+        findings.missing.append(f"{run.shown}: continual metrics need one room per task; "
                                 f"{', '.join(t for t, r in zip(run.planned, rooms) if r is None)} has none")
         return []
     stages = 0
     while (stages + 1, ALL) in acc:
         stages += 1
     if stages == 0:
-        findings.missing.append(f"{run.path}: no world model after task 1, so no continual metrics")
+        findings.missing.append(f"{run.shown}: no world model after task 1, so no continual metrics")
     return [[acc[(i + 1, room)] for room in rooms] for i in range(stages)]
 
 
@@ -249,6 +264,8 @@ def retention_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]
 
     if run.cfg.env.domain == GRID_DOMAIN:
         return []
+    if is_record_view(run.path):
+        return _read_retention(run, findings)
     try:
         _, checkpoints = heldout_checkpoints(run.path)
     except HeldoutError:
@@ -256,10 +273,23 @@ def retention_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]
     missing = [c.task for c in checkpoints if not heldout_path(run.path, c.stage, c.task).is_file()]
     if missing:
         why = ("it was trained with train.heldout_episodes=0" if run.cfg.train.heldout_episodes == 0
-               else f"`drago eval heldout {run.path}` records them from the checkpoints")
-        findings.missing.append(f"{run.path}: no held-out set for {', '.join(missing)}, so the retention matrix "
+               else f"`drago eval heldout {run.shown}` records them from the checkpoints")
+        findings.missing.append(f"{run.shown}: no held-out set for {', '.join(missing)}, so the retention matrix "
                                 f"lacks {'that column' if len(missing) == 1 else 'those columns'} ({why})")
     return retention_matrix(run.path) if len(missing) < len(checkpoints) else []
+
+
+def _read_retention(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
+    from drago.eval.heldout import RETENTION_FILE
+
+    try:
+        with (run.path / RETENTION_FILE).open(newline="") as handle:
+            return [dict(r, seed=int(r["seed"]), stage=int(r["stage"]), task_stage=int(r["task_stage"]),
+                         error=as_number(r["error"]), score=as_number(r["score"]), n=int(r["n"]))
+                    for r in csv.DictReader(handle)]
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+        findings.missing.append(f"{run.shown}: its record has no readable {RETENTION_FILE}, so no retention matrix")
+        return []
 
 
 def retention_tables(groups: dict[str, list[ReportedRun]], rows: dict[Path, list[dict[str, Any]]]) -> list[Table]:
@@ -301,7 +331,7 @@ def find_gaps(groups: dict[str, list[ReportedRun]], tasks: list[str], findings: 
     """Incomplete runs, missing checkpoints and files, uneven seeds and unreached tasks."""
     for runs in groups.values():
         for run in runs:
-            where = f"{run.path} ({run.label}, seed {run.seed})"
+            where = f"{run.shown} ({run.label}, seed {run.seed})"
             if run.summary is None:
                 findings.missing.append(f"{where}: no {SUMMARY_FILE}, no task finished yet")
             elif not run.complete:
@@ -310,7 +340,7 @@ def find_gaps(groups: dict[str, list[ReportedRun]], tasks: list[str], findings: 
                                         f"finished; not reached: {', '.join(left)}")
             for name, entry in run.finished.items():
                 checkpoint = entry.get("checkpoint")
-                if checkpoint and not (run.path / checkpoint).is_file():
+                if checkpoint and not is_record_view(run.path) and not (run.path / checkpoint).is_file():
                     findings.missing.append(f"{where}: the checkpoint of {name} ({checkpoint}) is missing, so that "
                                             f"stage has no coverage or heatmap")
             if run.finished and not run.eval_rows:

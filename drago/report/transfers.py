@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -118,9 +118,9 @@ def _relearning_matrix(run: ReportedRun, relearned: dict[tuple[str, int], float]
                for j in range(len(run.planned)) if (run.planned[j], i) not in relearned]
     # Relearning from one stage only (the paper's walker table: the final model) is no attempt at a matrix.
     if len({after for _, after in relearned}) > 1 and stages < len(run.finished) and lacking:
-        findings.missing.append(f"{run.path}: its relearning matrix stops at T = {stages}; it lacks "
+        findings.missing.append(f"{run.shown}: its relearning matrix stops at T = {stages}; it lacks "
                                 f"{', '.join(lacking[:4])}{' ...' if len(lacking) > 4 else ''} "
-                                f"(`drago transfer {run.path} --task TASK --after K`)")
+                                f"(`drago transfer {run.shown} --task TASK --after K`)")
     return [[relearned[(run.planned[j], i + 1)] for j in range(stages)] for i in range(stages)]
 
 
@@ -151,7 +151,7 @@ def transfer_gaps(groups: dict[str, list[ReportedRun]], tgroups: dict[str, list[
     """Unfinished transfers, scores not reached, cases some method or seed lacks, uneven few-shot episodes."""
     for label, runs in tgroups.items():
         for run in runs:
-            where = f"{run.path} ({label}, seed {run.seed}, {case_name(run.case)})"
+            where = f"{run.shown} ({label}, seed {run.seed}, {case_name(run.case)})"
             block = blocks[run.path]
             if block is None:
                 findings.missing.append(f"{where}: no few-shot scores (unreadable {EVAL_FILE})")
@@ -197,8 +197,9 @@ def transfer_gaps(groups: dict[str, list[ReportedRun]], tgroups: dict[str, list[
 
 
 # ---- the study's transfer tables: one row per case and seed, and the same statistic as the report ----
-def transfer_rows(transfer_dirs: Iterable[Path]) -> list[dict[str, Any]]:
-    """One row per transfer directory that has a summary: its few-shot scores, read both ways (paper §4.4)."""
+def transfer_rows(transfer_dirs: Iterable[Path], names: Mapping[Path, str] | None = None) -> list[dict[str, Any]]:
+    """One row per transfer directory that has a summary: its few-shot scores, read both ways (paper §4.4).
+    ``names`` says how to name a directory in the rows (a record view's, by its record); default its path."""
     rows = []
     for directory in transfer_dirs:
         if not is_run_dir(directory):
@@ -222,14 +223,16 @@ def transfer_rows(transfer_dirs: Iterable[Path]) -> list[dict[str, Any]]:
                      "return_equal_env_steps": at_steps.get("return"),
                      "fraction_equal_env_steps": at_steps.get("fraction_of_optimal"),
                      "total_env_steps": block.get("total_env_steps"), "wall_time_s": block.get("wall_time_s"),
-                     "directory": str(directory)})
+                     "directory": (names or {}).get(directory, str(directory))})
     return rows
 
 
-def write_transfer_tables(transfer_dirs: Iterable[Path], out_dir: Path) -> list[Path]:
+def write_transfer_tables(transfer_dirs: Iterable[Path], out_dir: Path,
+                          names: Mapping[Path, str] | None = None) -> list[Path]:
     """``transfers.csv`` (one row per case and seed) and ``transfers.md`` (mean ± std [95% CI] over seeds,
-    the report's statistic) for the transfer directories that have a summary; nothing if none has."""
-    rows = transfer_rows(transfer_dirs)
+    the report's statistic) for the transfer directories that have a summary; nothing if none has.
+    ``names``: as in :func:`transfer_rows`."""
+    rows = transfer_rows(transfer_dirs, names)
     if not rows:
         return []
     handle = io.StringIO(newline="")

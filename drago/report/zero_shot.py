@@ -27,39 +27,57 @@ from drago.eval.zero_shot import (
 from drago.report.content import Findings, Table
 from drago.report.runs import ReportedRun, as_number
 from drago.report.tables import format_summary
+from drago.training.records import is_record_view
 
 
 def zero_shot_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
     """The run's zero-shot rows at the evaluation's defaults (every task at its own reward reading)."""
     if run.cfg.env.domain != GRID_DOMAIN:
         return []
+    file = run.path / ZERO_SHOT_FILE
+    if is_record_view(run.path):
+        stages = {int(task["index"]) + 1 for task in (run.summary or {}).get("tasks", [])}
+        rows = _own_rows(file)
+        if rows is None:
+            findings.missing.append(f"{run.shown}: its record has no readable {ZERO_SHOT_FILE}, so no zero-shot "
+                                    "returns")
+            return []
+        return [r for r in rows if r["stage"] in stages and r["task"] in default_tasks(run.cfg.env.tasks)]
     try:
         _, checkpoints = run_checkpoints(run.path)
     except ZeroShotError:
         return []  # no finished stage: reported with the incomplete runs
     wanted = {(c.stage, task) for c in checkpoints for task in default_tasks(run.cfg.env.tasks)}
-    file = run.path / ZERO_SHOT_FILE
     why = "it has no zero_shot.csv"
     if file.is_file():
-        try:
-            with file.open(newline="") as handle:
-                # A file from before epsilon existed was made deterministically: its rows do not match.
-                rows = [dict(r, stage=int(r["stage"]), fraction=as_number(r["fraction"]), episodes=int(r["episodes"]),
-                             horizon=int(r["horizon"]), epsilon=as_number(r.get("epsilon")))
-                        for r in csv.DictReader(handle)]
-            newest = max(c.path.stat().st_mtime for c in checkpoints)
-            own = [r for r in rows if r["reward"] == ("dense" if r["task"] in GRID_TASKS_TRAINING else "sparse")]
-            if ({(r["stage"], r["task"]) for r in own} >= wanted and file.stat().st_mtime >= newest
-                    and all((r["episodes"], r["horizon"], r["epsilon"]) == (DEFAULT_EPISODES, DEFAULT_HORIZON,
-                                                                           DEFAULT_EPSILON) for r in own)):
-                return [r for r in own if (r["stage"], r["task"]) in wanted]
+        own = _own_rows(file)
+        if own is None:
+            why = "its zero_shot.csv is unreadable"
+        elif ({(r["stage"], r["task"]) for r in own} >= wanted
+              and file.stat().st_mtime >= max(c.path.stat().st_mtime for c in checkpoints)
+              and all((r["episodes"], r["horizon"], r["epsilon"]) == (DEFAULT_EPISODES, DEFAULT_HORIZON,
+                                                                     DEFAULT_EPSILON) for r in own)):
+            return [r for r in own if (r["stage"], r["task"]) in wanted]
+        else:
             why = ("its zero_shot.csv is older than its checkpoints or was made with other tasks, episodes, horizon "
                    "or epsilon")
-        except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
-            why = "its zero_shot.csv is unreadable"
-    findings.notes.append(f"{run.path}: zero-shot returns computed from the checkpoints ({why}); nothing was "
+    findings.notes.append(f"{run.shown}: zero-shot returns computed from the checkpoints ({why}); nothing was "
                           "written")
     return zero_shot_matrix(run.path)
+
+
+def _own_rows(file: Path) -> list[dict[str, Any]] | None:
+    """A zero_shot.csv's rows at each task's own reward (training rooms dense, transfers sparse), numbers as
+    numbers; None if it is missing or unreadable."""
+    try:
+        with file.open(newline="") as handle:
+            # A file from before epsilon existed was made deterministically: its rows do not match.
+            rows = [dict(r, stage=int(r["stage"]), fraction=as_number(r["fraction"]), episodes=int(r["episodes"]),
+                         horizon=int(r["horizon"]), epsilon=as_number(r.get("epsilon")))
+                    for r in csv.DictReader(handle)]
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+        return None
+    return [r for r in rows if r["reward"] == ("dense" if r["task"] in GRID_TASKS_TRAINING else "sparse")]
 
 
 def zero_shot_table(groups: dict[str, list[ReportedRun]], rows: dict[Path, list[dict[str, Any]]]) -> Table | None:

@@ -52,7 +52,8 @@ from drago.eval.predictor import WorldModelPredictor, load_world_model
 from drago.report import ReportError, build_report
 from drago.training.checkpoint import CheckpointError, NonFiniteCheckpoint
 from drago.training.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
-from drago.training.rundir import RunDirError
+from drago.training.records import RecordError, read_record
+from drago.training.rundir import RunDirError, read_run_config
 from drago.training.runs import Run
 from drago.training.trainer import Trainer, TrainingDiverged
 
@@ -61,7 +62,7 @@ __all__ = [
     "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
     "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
     "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
-    "reviewer_pay_of_run",
+    "reviewer_pay_of_run", "RecordError", "read_record", "record_run",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",
@@ -110,6 +111,28 @@ def train(cfg: Config, out: str | Path | None = None, force: bool = False, progr
     finally:
         trainer.logger.close()
     return Run(run_dir)
+
+
+def record_run(run_dir: str | Path, out: str | Path | None = None) -> tuple[Path, dict]:
+    """Evaluate a finished run from its checkpoints and write its record (``drago record``).
+
+    Args:
+        run_dir: A run whose every task and transfer case has finished.
+        out: The record file (default ``records/PRESET/METHOD/seedS.json.gz``).
+
+    Returns:
+        The record's path and contents.
+
+    Raises:
+        RecordError: an unfinished run or transfer, or a file that cannot be read (one line).
+    """
+    from drago.eval.unit import record_unit
+    from drago.training.records import RECORD_SUFFIX
+
+    if out is None:
+        cfg = read_run_config(Path(run_dir))
+        out = Path("records") / cfg.preset / cfg.method.name / f"seed{cfg.train.seed}{RECORD_SUFFIX}"
+    return Path(out), record_unit(run_dir, out)
 
 
 def __dir__() -> list[str]:

@@ -90,6 +90,7 @@ def _parser() -> argparse.ArgumentParser:
                            help="also write every run's rows into this one CSV")
     _add_transfer_parser(sub)
     _add_report_parser(sub)
+    _add_record_parser(sub)
     _add_study_parser(sub)
     return parser
 
@@ -335,11 +336,38 @@ def _cmd_report(args: argparse.Namespace) -> int:
 COMMANDS["report"] = _cmd_report
 
 
+# ---- drago record -----------------------------------------------------------------------------------
+def _add_record_parser(sub) -> None:
+    record = sub.add_parser(
+        "record", help="a finished run, its transfers and its evaluations as one small file to commit",
+        usage="drago record RUN_DIR [--out FILE]",
+        description="Makes every evaluation of the run's checkpoints (coverage, zero-shot returns and heatmap "
+                    "cells on the grid, held-out retention on DeepMind Control), then writes the run's record: "
+                    "its settings, provenance, logs, transfers and those evaluations, without checkpoints. "
+                    "`drago report` and `drago study --records` read records as they read run directories.")
+    record.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    record.add_argument("--out", type=Path, default=None, metavar="FILE",
+                        help="record file (default records/PRESET/METHOD/seedS.json.gz)")
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from drago.api import record_run
+
+    path, record = record_run(args.run_dir, args.out)
+    files = record["files"]
+    print(f"recorded {args.run_dir} -> {path} ({path.stat().st_size / 1024:.0f} KiB, {len(files)} files, "
+          f"protocol {record['protocol']['digest']})")
+    return 0
+
+
+COMMANDS["record"] = _cmd_record
+
+
 # ---- drago study ------------------------------------------------------------------------------------
 def _add_study_parser(sub) -> None:
     study = sub.add_parser(
         "study", help="the grid study in one command: methods x seeds, their transfer cases, one report",
-        usage="drago study [PRESET] [--methods M ...] [--seeds S ...] [--out DIR] [--jobs N] "
+        usage="drago study [PRESET] [--methods M ...] [--seeds S ...] [--out DIR] [--records DIR] [--jobs N] "
               "[--transfer-episodes N] [--transfer-eval-every N] [--transfer-few-shot-episodes N] [--cases TASK:K ...] "
               "[--transfer-reward R] [--no-transfer] "
               "[--dry-run | --status | --report-only] [--backend {local,slurm}] [--wait] [SLURM options] [key=value ...]",
@@ -374,6 +402,10 @@ def _add_study_parser(sub) -> None:
                        help="reward of the transfer cases (default: the run's transfer.reward, else the test task's "
                             "own, sparse on the grid); another one gets directories of its own, TASK-REWARD-afterK")
     study.add_argument("--no-transfer", action="store_true", help="sequence runs and report only")
+    study.add_argument("--records", type=Path, default=None, metavar="DIR",
+                       help="record each finished unit (a run, its transfers and evaluations) as "
+                            "DIR/METHOD/seedS.json.gz, skip units recorded there with the study's protocol, and "
+                            "build the report from the records (commit DIR to continue on another machine)")
     study.add_argument("--dry-run", action="store_true",
                        help="print the plan (with --backend slurm: the sbatch options of every job), run nothing")
     study.add_argument("--status", action="store_true",
@@ -458,7 +490,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
                       transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes,
                       transfer_eval_every=args.transfer_eval_every, cores=cores, check_settings=not args.status,
                       transfer_reward=args.transfer_reward, transfer_few_shot_episodes=args.transfer_few_shot_episodes,
-                      cases=parse_cases(args.cases) if args.cases else None)
+                      cases=parse_cases(args.cases) if args.cases else None,
+                      records=None if args.records is None else (args.records.absolute() if slurm else args.records))
     echo = lambda line: print(line, flush=True)  # noqa: E731
     if args.status:
         for line in study_slurm.status_lines(plan):

@@ -12,6 +12,13 @@ A study is a plan of jobs, each one ``drago`` command line, worked out from what
 * then the report over the runs (``OUT/report/report.html`` and ``report.md``) and the transfers'
   few-shot scores (``OUT/report/transfers.csv`` and ``transfers.md``).
 
+With a records folder (``--records DIR``, meant to be committed), a study's unit of work is one run with its
+transfer cases and the evaluations made from its checkpoints (:mod:`drago.eval.unit`), exported as one record,
+``DIR/METHOD/seedS.json.gz``, as soon as the unit is finished. A unit whose record has the study's protocol is
+skipped, on this machine or any other; one recorded with another protocol is run again (and its record
+replaced); the report is built from the records. So the same command in a fresh clone continues where the
+committed records stop (docs: Command line, "Records: studies that outlive the machine").
+
 Because the plan is computed afresh from the directories, running the same command again after any
 crash (a failed run, Ctrl-C, a SIGKILL of the study itself) finishes the study without redoing finished
 work. A directory holding a run with other settings than the study's is an error, never mixed in.
@@ -44,6 +51,7 @@ from drago.continual.base import Budget
 from drago.envs import get_domain
 from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
 from drago.training.resources import keep_freed_memory_requested
+from drago.training.records import RECORD_SUFFIX, RecordError, protocol_diffs, read_record
 from drago.training.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
 from drago.training.transfer import (
     DEFAULT_EPISODES,
@@ -53,11 +61,12 @@ from drago.training.transfer import (
     plan_transfer,
     resolve_task,
     reward_variant,
+    transfer_config,
 )
 
 __all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
            "default_study_dir", "describe_plan", "directory_state", "parse_cases", "parse_seeds", "plan_study",
-           "run_study", "write_report"]
+           "record_path", "record_units", "records_status", "run_study", "write_report"]
 
 DEFAULT_PRESET = "minigrid-cpu"
 DEFAULT_METHODS = ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer")
@@ -114,7 +123,8 @@ class Job:
 
     Attributes:
         label: How the job is named in the study's output, e.g. ``drago seed1 room1to2-after2``.
-        kind: ``run`` (a sequence run) or ``transfer`` (one transfer case).
+        kind: ``run`` (a sequence run), ``transfer`` (one transfer case) or ``record`` (a finished unit's
+            evaluations and record, with a records folder).
         method, seed: The run's (for a transfer, its source run's).
         directory: The run directory the job writes.
         state: What the plan found: ``start`` (never started), ``resume`` (interrupted) or ``done``.
@@ -124,6 +134,10 @@ class Job:
         source: For a transfer, the run job it waits for (None when that run was already complete).
         case: For a transfer, (test task, stage K).
         status: ``pending``, ``running``, ``done``, ``failed`` or ``blocked`` (its run failed).
+        needs: Further jobs it waits for (a record job: its run and transfers).
+        record: With a records folder, the unit's record file; ``recorded`` when that record, with the
+            study's protocol, is what the job's work is taken from (the job is then done wherever it ran).
+        protocol: The unit's protocol the record must have (a record job's, and a recorded unit's jobs').
     """
 
     label: str
@@ -140,6 +154,10 @@ class Job:
     status: str = "pending"
     returncode: int | None = None
     seconds: float = 0.0
+    needs: list[Job] = field(default_factory=list)
+    record: Path | None = None
+    recorded: bool = False
+    protocol: dict[str, Any] | None = None
 
 
 @dataclass
@@ -162,8 +180,10 @@ class StudyPlan:
     transfer_reward: str | None = None  # dense or sparse: the transfers' reward, if not their runs' default
     transfer_few_shot_episodes: int | None = None  # None: 20, or the transfer's episodes if fewer
     own_cases: bool = False  # the cases were chosen (--cases), not the paper's
+    records: Path | None = None  # the records folder, if units are recorded
     runs: list[Job] = field(default_factory=list)
     transfers: list[Job] = field(default_factory=list)
+    record_jobs: list[Job] = field(default_factory=list)  # run locally; a SLURM study's report job records
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -220,7 +240,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                transfer_episodes: int = DEFAULT_EPISODES, transfer_eval_every: int = 1,
                cores: int | None = None, check_settings: bool = True,
                transfer_reward: str | None = None, transfer_few_shot_episodes: int | None = None,
-               cases: Sequence[tuple[str, int]] | None = None) -> StudyPlan:
+               cases: Sequence[tuple[str, int]] | None = None, records: str | Path | None = None) -> StudyPlan:
     """Work out what a study still has to do, from its directories.
 
     Args:
@@ -244,6 +264,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         cores: CPU cores to share (default: those this process may use).
         check_settings: Refuse directories holding runs with other settings (off for ``--status``, which
             only reads what is there).
+        records: The records folder: units recorded there with this study's protocol are skipped, the
+            others are recorded there once finished (see the module docstring).
 
     Raises:
         StudyError: A bad argument, or a directory holding something other than what the study would
@@ -287,7 +309,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                      tasks=tuple(base.env.tasks), jobs=jobs, threads=base.train.threads, cores=cores,
                      transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept,
                      budget=Budget.from_config(base).describe(), transfer_reward=transfer_reward,
-                     transfer_few_shot_episodes=transfer_few_shot_episodes, own_cases=bool(cases) and not paper)
+                     transfer_few_shot_episodes=transfer_few_shot_episodes, own_cases=bool(cases) and not paper,
+                     records=None if records is None else Path(records))
     if transfers and not cases:
         plan.notes.append(f"the paper has no transfer cases for domain {base.env.domain}: none planned")
     left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
@@ -303,6 +326,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
             cfg = check_method(load_config(preset, overrides, method=method, seed=seed))
             run_dir = out / method / f"seed{seed}"
             label = f"{method} seed{seed}"
+            if plan.records is not None and _plan_recorded_unit(plan, cfg, run_dir, label, logs, kept):
+                continue
             state, existing = _state(run_dir, lambda cfg=cfg: cfg, "run", check_settings)
             argv = {START: ["train", preset, "--method", method, "--seed", str(seed), "--out", str(run_dir),
                             "--no-progress", *overrides],
@@ -311,13 +336,89 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
             run = Job(label, "run", method, seed, run_dir, state, argv, logs / f"{method}-seed{seed}.log",
                       source_cfg.train.threads)
             plan.runs.append(run)
-            for task, after in kept:
-                plan.transfers.append(_transfer_job(run, source_cfg, task, after, plan, logs, check_settings))
+            transfers = [_transfer_job(run, source_cfg, task, after, plan, logs, check_settings) for task, after in kept]
+            plan.transfers.extend(transfers)
+            if plan.records is not None:
+                _plan_record_job(plan, cfg, run, transfers, logs)
     resumed = sorted({j.threads for j in plan.runs if j.state == RESUME and j.threads != plan.threads})
     if resumed:
         plan.notes.append(f"interrupted runs keep the train.threads they started with "
                           f"({', '.join(map(str, resumed))}; 0 is every core)")
     return plan
+
+
+def record_path(records: Path, method: str, seed: int) -> Path:
+    """Where a study keeps the record of one unit."""
+    return Path(records) / method / f"seed{seed}{RECORD_SUFFIX}"
+
+
+def _wanted_protocol(plan: StudyPlan, cfg: Config, run_dir: Path,
+                     kept: Sequence[tuple[str, int]]) -> dict[str, Any]:
+    """The protocol a unit of this study records: its run's config and those its transfer cases will write
+    (their checkpoint paths aside, which no protocol holds)."""
+    from drago.eval.unit import unit_protocol
+
+    dense = None if plan.transfer_reward is None else plan.transfer_reward == "dense"
+    transfers = {}
+    for task, after in kept:
+        _, case = resolve_task(cfg, task)
+        pre = {"pre_rollout_checkpoint": "-"} if case is not None and case.pre_rollout_source is not None else {}
+        name = default_transfer_dir(run_dir, task, after, reward_variant(cfg, task, dense)).name
+        transfers[name] = transfer_config(cfg, task, "-", after, episodes=plan.transfer_episodes,
+                                          few_shot_episodes=plan.transfer_few_shot_episodes,
+                                          eval_every=plan.transfer_eval_every, dense_reward=dense, **pre)
+    return unit_protocol(cfg, transfers)
+
+
+def _record_verdict(path: Path, protocol: dict[str, Any]) -> str | None:
+    """None when ``path`` is a readable record with ``protocol``; else why it is not used (one phrase)."""
+    from drago.training.records import protocol_digest
+
+    if not path.is_file():
+        return "missing"
+    try:
+        found = read_record(path)
+    except RecordError as err:
+        return str(err)
+    if found["protocol"]["digest"] == protocol_digest(protocol):
+        return None
+    return f"{path} was recorded with another protocol ({protocol_diffs(found['protocol'], protocol)})"
+
+
+def _plan_recorded_unit(plan: StudyPlan, cfg: Config, run_dir: Path, label: str, logs: Path,
+                        kept: Sequence[tuple[str, int]]) -> bool:
+    """Add a unit whose record has the study's protocol as done jobs; False (nothing added) otherwise."""
+    protocol = _wanted_protocol(plan, cfg, run_dir, kept)
+    path = record_path(plan.records, cfg.method.name, cfg.train.seed)
+    verdict = _record_verdict(path, protocol)
+    if verdict is not None:
+        if verdict != "missing":
+            plan.notes.append(f"not used, its unit runs again and a new record replaces it: {verdict}")
+        return False
+    method, seed = cfg.method.name, cfg.train.seed
+    run = Job(label, "run", method, seed, run_dir, DONE, [], logs / f"{method}-seed{seed}.log", cfg.train.threads,
+              record=path, recorded=True, protocol=protocol)
+    plan.runs.append(run)
+    dense = None if plan.transfer_reward is None else plan.transfer_reward == "dense"
+    for task, after in kept:
+        case_dir = default_transfer_dir(run_dir, task, after, reward_variant(cfg, task, dense))
+        plan.transfers.append(Job(f"{label} {case_dir.name}", "transfer", method, seed, case_dir, DONE, [],
+                                  logs / f"{method}-seed{seed}-{case_dir.name}.log", cfg.train.threads,
+                                  case=(task, after), record=path, recorded=True, protocol=protocol))
+    return True
+
+
+def _plan_record_job(plan: StudyPlan, cfg: Config, run: Job, transfers: Sequence[Job], logs: Path) -> None:
+    """The job that evaluates and records a unit once its run and transfers have finished."""
+    protocol = _wanted_protocol(plan, cfg, run.directory, [t.case for t in transfers if t.case is not None])
+    path = record_path(plan.records, run.method, run.seed)
+    for job in (run, *transfers):
+        job.record, job.protocol = path, protocol
+    plan.record_jobs.append(Job(f"{run.label} record", "record", run.method, run.seed, run.directory, START,
+                                ["record", str(run.directory), "--out", str(path)],
+                                logs / f"{run.method}-seed{run.seed}-record.log", 1,
+                                needs=[j for j in (run, *transfers) if j.state != DONE], record=path,
+                                protocol=protocol))
 
 
 def _check_cases(cfg: Config, cases: Sequence[tuple[str, int]], n_tasks: int) -> None:
@@ -450,6 +551,10 @@ def describe_plan(plan: StudyPlan, verbose: bool = False, resources: Sequence[st
             lines.append(f"  time:      {estimate}")
     else:
         lines += resources
+    if plan.records is not None:
+        recorded = sum(run.recorded for run in plan.runs)
+        lines.append(f"  records:   {plan.records}/METHOD/seedS{RECORD_SUFFIX}: {recorded} unit{'s' * (recorded != 1)} "
+                     f"recorded (skipped), {len(plan.record_jobs)} to record once finished")
     report = f"{plan.report_dir / 'report.html'} and report.md"
     if plan.cases:
         report += f", with {TRANSFERS_CSV} and {TRANSFERS_MD} for the transfers"
@@ -508,6 +613,10 @@ def summary_line(plan: StudyPlan, finished: Sequence[Job], failures: Sequence[tu
     if report_error:
         parts.append(f"no report ({report_error})")
     return f"study incomplete: {'; '.join(parts)}; run the same command again to continue"
+
+
+def _waits_for(job: Job) -> list[Job]:
+    return [*([job.source] if job.source is not None else []), *job.needs]
 
 
 class _Done:
@@ -591,6 +700,8 @@ def _stop(running: dict[Job, Any]) -> None:
 
 def job_outcome(job: Job) -> str:
     """A short result of a finished job for its console line."""
+    if job.kind == "record":
+        return f"{job.record} ({job.record.stat().st_size / 1024:.0f} KiB)" if job.record.is_file() else ""
     try:
         summary = read_summary(job.directory)  # None before the first task: a TypeError below
         if job.kind == "transfer":
@@ -620,7 +731,7 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
     """
     launch: Callable[[Job], Any] = (_launch_process if in_process is None
                                     else lambda job: _launch_in_process(job, in_process))
-    todo = [job for job in plan.ordered if job.state != DONE]
+    todo = [job for job in [*plan.ordered, *plan.record_jobs] if job.state != DONE]
     total, count = len(todo), 0
     finished: list[Job] = []
     running: dict[Job, Any] = {}
@@ -633,14 +744,16 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
     with study_lock(plan.out):
         try:
             while todo or running:
-                for job in [j for j in todo if j.source is not None and j.source.status in ("failed", "blocked")]:
+                for job in [j for j in todo if any(n.status in ("failed", "blocked") for n in _waits_for(j))]:
                     todo.remove(job)
                     job.status = "blocked"
-                    line(job, f"not started: {job.label} (its run failed)")
-                # Runs before transfers: a run is the longest job and unlocks four, so starting runs
-                # first keeps the cores busy to the end instead of leaving one last run alone.
-                ready = sorted((j for j in todo if j.source is None or j.source.status == "done"),
-                               key=lambda j: j.kind == "transfer")
+                    line(job, f"not started: {job.label} ({'its run' if job.kind == 'transfer' else 'a job of its unit'}"
+                              " failed)")
+                # Records first, to keep a finished unit even if the study is stopped; then runs before
+                # transfers: a run is the longest job and unlocks four, so starting runs first keeps the
+                # cores busy to the end instead of leaving one last run alone.
+                ready = sorted((j for j in todo if all(n.status == "done" for n in _waits_for(j))),
+                               key=lambda j: ("record", "run", "transfer").index(j.kind))
                 while ready and len(running) < plan.jobs:
                     job = ready.pop(0)
                     todo.remove(job)
@@ -656,6 +769,11 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
                 for job, code in ended:
                     del running[job]
                     job.returncode, job.seconds = code, time.monotonic() - job.seconds
+                    mismatch = _record_verdict(job.record, job.protocol) if code == 0 and job.kind == "record" else None
+                    if mismatch:  # the next study would run the unit again: say so now, not then
+                        code = job.returncode = 1
+                        with job.log.open("a") as log:
+                            log.write(f"drago study: the record does not have the study's protocol: {mismatch}\n")
                     if code == 0:
                         job.status = "done"
                         finished.append(job)
@@ -686,16 +804,99 @@ def write_report(plan: StudyPlan, echo: Callable[[str], None] = print) -> tuple[
     return _write_report(plan, echo)
 
 
+def record_units(plan: StudyPlan, echo: Callable[[str], None] = print) -> list[Path]:
+    """Record every finished unit of a study with a records folder whose record is missing or has another
+    protocol (what a SLURM study's report job does before its report; the local backend records each unit as
+    it finishes). Returns the records written.
+
+    Raises:
+        RecordError: a finished unit that cannot be recorded, or whose record lacks the study's protocol.
+    """
+    from drago.eval.unit import record_unit
+
+    written = []
+    for run in plan.runs:
+        if run.record is None or run.recorded or _record_verdict(run.record, run.protocol) is None:
+            continue
+        mine = [t for t in plan.transfers if (t.method, t.seed) == (run.method, run.seed)]
+        if not all(is_complete(job.directory) for job in (run, *mine)):
+            continue
+        record_unit(run.directory, run.record)
+        mismatch = _record_verdict(run.record, run.protocol)
+        if mismatch:
+            raise RecordError(f"the record of {run.label} does not have the study's protocol: {mismatch}")
+        echo(f"recorded {run.label}: {run.record}")
+        written.append(run.record)
+    return written
+
+
+def records_status(plan: StudyPlan) -> list[str]:
+    """``--status`` of a study with a records folder: units recorded, in progress and to do, and the CPU-hours
+    left, estimated from the recorded units' own CPU time (per method where one is recorded)."""
+    from drago.eval.unit import unit_cpu_seconds
+
+    if plan.records is None:
+        return []
+    spent: dict[str, list[float]] = {}
+    for run in plan.runs:
+        if run.recorded:
+            spent.setdefault(run.method, []).append(unit_cpu_seconds(read_record(run.record)))
+    every = [s for values in spent.values() for s in values]
+    left, unknown, started, todo = 0.0, [], 0, 0
+    for run in plan.runs:
+        if run.recorded:
+            continue
+        if is_run_dir(run.directory):
+            started += 1
+        else:
+            todo += 1
+        basis = spent.get(run.method) or every
+        if not basis:
+            unknown.append(run.label)
+            continue
+        done = sum(float(t.get("cpu_time_s", 0.0)) for t in ((read_summary(run.directory) or {}).get("tasks", [])
+                                                             if is_run_dir(run.directory) else []))
+        left += max(0.0, statistics.mean(basis) - done)
+    recorded = sum(run.recorded for run in plan.runs)
+    lines = [f"  units:   {recorded} recorded in {plan.records}, {started} in progress here, {todo} to do"]
+    if recorded < len(plan.runs):
+        estimate = (f"about {left / 3600:.1f} CPU-hours ({format_duration(left)}) left (mean CPU time of the recorded units of the same "
+                    f"method, else of all {len(every)}; the finished tasks of units in progress counted off)"
+                    if every else "CPU-hours left: unknown until a unit is recorded")
+        if every and unknown:
+            estimate += f"; not counted: {', '.join(unknown)}"
+        lines.append(f"  cost:    {estimate}")
+    return lines
+
+
+def _report_sources(plan: StudyPlan) -> list[Path]:
+    """What the report reads of each unit: its record where it has one with the study's protocol, else its
+    run directory (a unit not yet recorded); a record of another protocol is never mixed in."""
+    sources = []
+    for run in plan.runs:
+        if run.record is not None and _record_verdict(run.record, run.protocol) is None:
+            sources.append(run.record)
+        elif is_run_dir(run.directory):
+            sources.append(run.directory)
+    return sources
+
+
 def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Path], str | None]:
     from drago.report import build_report, write_transfer_tables
+    from drago.report.runs import find_transfer_dirs, opened_runs
     from drago.training.checkpoint import CheckpointError
 
-    run_dirs = [job.directory for job in plan.runs if is_run_dir(job.directory)]
-    if not run_dirs:
-        return [], "no run of the study has started"
     try:
-        paths = list(build_report(run_dirs, plan.report_dir))
-        paths += write_transfer_tables([job.directory for job in plan.transfers], plan.report_dir)
+        if plan.records is not None:
+            record_units(plan, echo)
+        sources = _report_sources(plan)
+        if not sources:
+            return [], "no run of the study has started"
+        paths = list(build_report(sources, plan.report_dir))
+        with opened_runs(sources) as found:
+            names = {case: (f"{shown}: {case.relative_to(view)}" if view != Path(shown) else str(case))
+                     for view, shown in found for case in find_transfer_dirs(view)}
+            paths += write_transfer_tables(list(names), plan.report_dir, names)
     except (RunDirError, ConfigError, CheckpointError) as err:
         echo(f"report not written: {err}")
         return [], str(err)

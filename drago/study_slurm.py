@@ -48,8 +48,8 @@ from pathlib import Path
 from typing import Any
 
 from drago.study import (DONE, LOCK_FILE, LOG_FOLDER, PARENT_ENV, RESUME, START, Job, StudyError, StudyPlan,
-                         directory_state, format_duration, job_outcome, job_wall_time, study_lock, summary_line,
-                         transfer_argv, write_report)
+                         directory_state, format_duration, job_outcome, job_wall_time, records_status, study_lock,
+                         summary_line, transfer_argv, write_report)
 from drago.training.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
 
 __all__ = ["SlurmOptions", "SlurmResult", "StudyJob", "Submission", "active_job_ids", "describe_resources",
@@ -639,6 +639,8 @@ def report_argv(plan: StudyPlan) -> list[str]:
         argv += ["--cases", *(f"{task}:{after}" for task, after in plan.cases)]
     if not plan.cases:
         argv.append("--no-transfer")
+    if plan.records is not None:
+        argv += ["--records", str(plan.records)]
     return [*argv, "--report-only", *plan.overrides]
 
 
@@ -1229,7 +1231,9 @@ def status_lines(plan: StudyPlan) -> list[str]:
         job_id = record.latest.get(job.label)
         state = states.get(job_id) if job_id else None
         ref = f"job {job_id} " if job_id else ""
-        if job.state == DONE:
+        if job.recorded:
+            kind, detail = "done", f"recorded in {job.record}"
+        elif job.state == DONE:
             seconds = job_wall_time(job)
             kind, detail = "done", f"{ref}" + (f"in {format_duration(seconds)}" if seconds is not None else "")
         elif state is not None and state.active:
@@ -1264,4 +1268,4 @@ def status_lines(plan: StudyPlan) -> list[str]:
         report = "not written yet"
     lines.append(f"  report:  {report}")
     lines.append("  " + ", ".join(f"{n} {name}" for name, n in counts.items()))
-    return lines
+    return lines + records_status(plan)

@@ -1,0 +1,168 @@
+"""Run records and studies that continue from them (docs: Reproducing the paper, "Studies that outlive the
+machine"): a finished unit is one small file, and the same study command on another machine, holding only
+the records folder, skips what is recorded with the same protocol and runs what is not."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from drago import cli
+from drago.report.runs import ReportError, opened_runs
+from drago.study import DONE, START, plan_study, run_study
+from drago.training.records import RECORD_VERSION, RecordError, read_record, write_record
+
+METHODS = ("continual", "scratch")
+TINY = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100", "train.tensorboard=false",
+        "agent.mlp_dim=16", "agent.batch_size=16", "agent.iterations=1", "agent.num_samples=8", "agent.num_elites=2",
+        "train.threads=1"]
+REPORT_FILES = ("report.md", "report.html", "transfers.csv", "transfers.md")
+
+
+def plan(out: Path, records: Path, *extra: str, methods=METHODS):
+    return plan_study("smoke", methods, [1], out=out, overrides=[*TINY, *extra], transfer_episodes=1, records=records)
+
+
+def report_bytes(out: Path) -> dict[str, bytes]:
+    return {name: (out / "report" / name).read_bytes() for name in REPORT_FILES}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> tuple[Path, Path]:
+    """A finished two-method study with a records folder: (study folder, records folder)."""
+    root = tmp_path_factory.mktemp("recorded")
+    here = Path.cwd()
+    os.chdir(root)  # relative paths, as a study committed to a repository is run from its root
+    try:
+        result = run_study(plan(Path("study"), Path("records")), echo=lambda line: None, in_process=cli.main)
+    finally:
+        os.chdir(here)
+    assert result.ok, result.summary_line()
+    return root / "study", root / "records"
+
+
+def test_each_finished_unit_is_one_small_record_without_binary_state(recorded):
+    out, records = recorded
+    paths = sorted(records.rglob("*.json.gz"))
+    assert [p.relative_to(records).as_posix() for p in paths] == ["continual/seed1.json.gz", "scratch/seed1.json.gz"]
+    for path in paths:
+        record = read_record(path)
+        files = record["files"]
+        assert {"config.yaml", "summary.json", "eval.csv", "train.csv", "coverage.csv", "zero_shot.csv",
+                "cells.json"} <= set(files)
+        assert sum(name.startswith("transfer/") and name.endswith("/summary.json") for name in files) == 4
+        assert not any(name.endswith((".pt", ".npz")) or name.startswith(("checkpoints/", "tb/")) for name in files)
+        assert record["provenance"]["threads"] == 1 and record["provenance"]["torch"]
+        assert "train.threads" not in record["protocol"]["run"] and "agent.precision" not in record["protocol"]["run"]
+        assert path.stat().st_size < 200_000
+
+
+def test_a_fresh_machine_with_only_the_records_skips_every_unit_and_writes_the_same_report(recorded, tmp_path,
+                                                                                           monkeypatch):
+    out, records = recorded
+    shutil.copytree(records, tmp_path / "clone" / "records")
+    monkeypatch.chdir(tmp_path / "clone")
+    again = plan(Path("study"), Path("records"))
+    assert all(job.state == DONE and job.recorded for job in [*again.runs, *again.transfers])
+    assert not again.record_jobs
+    lines = []
+    result = run_study(again, echo=lines.append, in_process=cli.main)
+    assert result.ok and not result.finished, lines
+    assert not (tmp_path / "clone" / "study" / "continual").exists()  # nothing was trained
+    assert report_bytes(tmp_path / "clone" / "study") == report_bytes(out)
+
+
+def test_a_changed_setting_reruns_exactly_the_units_it_changed(recorded, tmp_path):
+    out, records = recorded
+    mine = tmp_path / "records"
+    shutil.copytree(records, mine)
+    # scratch is studied again with another planner horizon: its record is replaced, continual's is untouched
+    result = run_study(plan(tmp_path / "other", mine, "agent.horizon=2", methods=("scratch",)), echo=lambda line: None,
+                       in_process=cli.main)
+    assert result.ok
+    assert read_record(mine / "scratch" / "seed1.json.gz")["protocol"]["run"]["agent.horizon"] == 2
+    assert (mine / "continual" / "seed1.json.gz").read_bytes() == (records / "continual" / "seed1.json.gz").read_bytes()
+    # the original study now has one unit to run again, and says why
+    again = plan(tmp_path / "again", mine)
+    states = {job.label: job.state for job in again.runs}
+    assert states == {"continual seed1": DONE, "scratch seed1": START}
+    assert [job.label for job in again.record_jobs] == ["scratch seed1 record"]
+    assert any("agent.horizon: 2 recorded, 3 now" in note for note in again.notes), again.notes
+
+
+def test_a_corrupt_or_foreign_record_is_one_line_and_not_used(recorded, tmp_path, capsys):
+    _, records = recorded
+    mine = tmp_path / "records"
+    shutil.copytree(records, mine)
+    corrupt = mine / "continual" / "seed1.json.gz"
+    corrupt.write_bytes(corrupt.read_bytes()[:200])
+    foreign = mine / "scratch" / "seed1.json.gz"
+    record = read_record(foreign)
+    write_record({**record, "version": RECORD_VERSION + 1}, foreign)
+    for path, why in ((corrupt, "is corrupt"), (foreign, f"has format version {RECORD_VERSION + 1}")):
+        with pytest.raises(RecordError, match=why) as err:
+            read_record(path)
+        assert "\n" not in str(err.value)
+        assert cli.main(["report", str(path), "--out", str(tmp_path / "r")]) == 2
+        error = capsys.readouterr().err
+        assert error.count("\n") == 1 and why in error
+    again = plan(tmp_path / "study", mine)
+    assert all(job.state == START and not job.recorded for job in again.runs)
+    notes = " ".join(again.notes)
+    assert "is corrupt" in notes and f"format version {RECORD_VERSION + 1}" in notes
+    not_json = mine / "x.json.gz"
+    not_json.write_bytes(gzip.compress(b"[1, 2]"))
+    with pytest.raises(RecordError, match="not a drago run record"):
+        read_record(not_json)
+
+
+def test_a_record_cannot_write_outside_its_view(recorded, tmp_path):
+    _, records = recorded
+    record = read_record(records / "continual" / "seed1.json.gz")
+    evil = tmp_path / "evil.json.gz"
+    write_record({**record, "files": {**record["files"], "../escaped.txt": "x"}}, evil)
+    with pytest.raises(RecordError, match="outside its run directory"), opened_runs([evil]):
+        pass
+    assert not (tmp_path / "escaped.txt").exists()
+
+
+def test_records_and_run_directories_give_the_same_report_tables(recorded, tmp_path):
+    out, records = recorded
+    assert cli.main(["report", str(out / "continual" / "seed1"), str(out / "scratch" / "seed1"),
+                     "--out", str(tmp_path / "dirs")]) == 0
+    assert cli.main(["report", str(records), "--out", str(tmp_path / "recs")]) == 0
+    dirs = (tmp_path / "dirs" / "report.md").read_text().splitlines()
+    recs = (tmp_path / "recs" / "report.md").read_text().splitlines()
+    assert len(dirs) == len(recs)
+    differ = [(a, b) for a, b in zip(dirs, recs) if a != b]
+    # only the page's provenance line and the runs' names differ
+    assert differ[0][0].startswith("Generated ") and differ[0][1].startswith("Built from 2 records")
+    assert all(str(out) in a and str(records) in b for a, b in differ[1:]) and len(differ) == 3
+
+
+def test_status_counts_units_and_the_cpu_hours_left(recorded, tmp_path, capsys):
+    out, records = recorded
+    argv = ["study", "smoke", "--methods", *METHODS, "ewc", "--seeds", "1", "--out", str(tmp_path / "s"),
+            "--records", str(records), "--transfer-episodes", "1", "--status", *TINY]
+    assert cli.main(argv) == 0
+    text = capsys.readouterr().out
+    assert f"units:   2 recorded in {records}, 0 in progress here, 1 to do" in text
+    assert "CPU-hours" in text and "left" in text
+
+
+def test_record_command_refuses_an_unfinished_run(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli.main(["train", "smoke", "--out", str(run), "--no-progress", *TINY, "env.tasks=[room1]"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    summary["complete"] = False
+    (run / "summary.json").write_text(json.dumps(summary))
+    assert cli.main(["record", str(run), "--out", str(tmp_path / "r.json.gz")]) == 2
+    assert "has not finished every task" in capsys.readouterr().err
+    with pytest.raises(ReportError):
+        with opened_runs([tmp_path / "nothing-here"]):
+            pass

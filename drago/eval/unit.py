@@ -8,8 +8,10 @@ one makes the units recorded without it due again.
 
 Grid runs (a tabular domain with a known reward): world-model coverage per room (``coverage.csv``), the
 zero-shot return matrix (``zero_shot.csv``), the per-cell prediction scores of the paper's forgetting
-heatmap (``cells.json``) and, for the methods that pay a reviewer, what it is paid (``reviewer_pay.json``).
-DeepMind Control runs: held-out retention (``retention.csv``).
+heatmap (``cells.json``), for the methods that pay a reviewer what it is paid (``reviewer_pay.json``), the
+retention of each part of the agent and the swap test (``components.csv``, ``swap.csv``,
+:mod:`drago.eval.components`). DeepMind Control runs: held-out retention (``retention.csv``). Every run:
+what it carries across each task boundary and what each task spent (``costs.csv``, :mod:`drago.eval.costs`).
 """
 
 from __future__ import annotations
@@ -63,8 +65,9 @@ def _is_grid(cfg: Config) -> bool:
 def unit_evaluations(cfg: Config) -> list[str]:
     """The names of the evaluations a unit of this run's domain makes from its checkpoints."""
     if _is_grid(cfg):
-        return ["coverage", "zero_shot", "cells", "reviewer_pay"]
-    return ["retention"]
+        # components reads the zero-shot rows: it comes after zero_shot
+        return ["coverage", "zero_shot", "cells", "reviewer_pay", "components", "costs"]
+    return ["retention", "costs"]
 
 
 def unit_protocol(run: Config, transfers: Mapping[str, Config]) -> dict[str, Any]:
@@ -148,24 +151,34 @@ def evaluate_unit(run_dir: str | Path) -> dict[str, float]:
         drago.training.rundir.RunDirError: no run directory or no finished task.
         drago.training.checkpoint.CheckpointError: a corrupt checkpoint.
     """
+    from drago.eval.components import (COMPONENTS_FILE, SWAP_FILE, components_of_run, write_components_csv,
+                                       write_swap_csv)
+    from drago.eval.costs import COSTS_FILE, costs_of_run, write_costs_csv
     from drago.eval.heldout import RETENTION_FILE, retention_matrix, write_retention_csv
     from drago.eval.zero_shot import ZERO_SHOT_FILE, write_zero_shot_csv, zero_shot_matrix
 
     run_dir = Path(run_dir)
     cfg = read_run_config(run_dir)
-    seconds = {}
+    seconds, zero_shot = {}, []
     for name in unit_evaluations(cfg):
         started = time.process_time()
         if name == "coverage":
             rows = [dict(r, run=_unit_name(cfg)) for r in coverage_of_run(run_dir)]
             write_coverage_csv(rows, run_dir / COVERAGE_FILE)
         elif name == "zero_shot":
-            rows = [dict(r, run=_unit_name(cfg)) for r in zero_shot_matrix(run_dir)]
-            write_zero_shot_csv(rows, run_dir / ZERO_SHOT_FILE)
+            zero_shot = [dict(r, run=_unit_name(cfg)) for r in zero_shot_matrix(run_dir)]
+            write_zero_shot_csv(zero_shot, run_dir / ZERO_SHOT_FILE)
         elif name == "cells":
             _write_json(run_dir, CELLS_FILE, _cells(run_dir))
         elif name == "reviewer_pay":
             _write_json(run_dir, REVIEWER_PAY_FILE, _pay_json(run_dir))
+        elif name == "components":
+            own = [r for r in zero_shot if task_room(r["task"]) is not None]
+            rows, swaps = components_of_run(run_dir, own)
+            write_components_csv(rows, run_dir / COMPONENTS_FILE)
+            write_swap_csv(swaps, run_dir / SWAP_FILE)
+        elif name == "costs":
+            write_costs_csv(costs_of_run(run_dir), run_dir / COSTS_FILE)
         elif name == "retention":
             rows = [dict(r, run=_unit_name(cfg)) for r in retention_matrix(run_dir, record_missing=True)]
             write_retention_csv(rows, run_dir / RETENTION_FILE)

@@ -267,7 +267,7 @@ class LatticePlanner:
 
 
 def play(model: LatticeModel, task: GridTask, episodes: int = DEFAULT_EPISODES, seed: int = 0, stage: int = 0,
-         horizon: int = DEFAULT_HORIZON, epsilon: float = DEFAULT_EPSILON) -> np.ndarray:
+         horizon: int = DEFAULT_HORIZON, epsilon: float = DEFAULT_EPSILON, planner: Any = None) -> np.ndarray:
     """Play ``episodes`` episodes of ``task`` in the real env, planning over ``model``.
 
     Episode e starts on the task's start cell facing heading e mod 4: the env draws the heading uniformly,
@@ -276,10 +276,13 @@ def play(model: LatticeModel, task: GridTask, episodes: int = DEFAULT_EPISODES, 
     own, seeded from (seed, stage, task, reward type, e), so an episode does not depend on how many others
     are played; torch's global generator is never used. With ``epsilon`` 0 nothing is drawn but ties.
 
+    ``planner`` replaces the true-reward :class:`LatticePlanner` with another that has its ``act`` (planning
+    with learned heads, :class:`drago.eval.components.HeadsPlanner`); ``horizon`` is then unused.
+
     Returns:
         (episodes,) float64 undiscounted returns.
     """
-    planner = LatticePlanner(model, task, horizon)
+    planner = planner if planner is not None else LatticePlanner(model, task, horizon)
     env = make_env(GRID_DOMAIN, task.name, dense_reward=task.dense)
     task_number = list(GRID_TASKS).index(task.name)
     returns = np.zeros(int(episodes))

@@ -1,0 +1,416 @@
+"""Which part forgot: per-component retention of a TD-MPC agent on the grid, and the swap test.
+
+A model-based agent has parts that can forget separately: the world model's dynamics, and each task's heads
+(reward, twin Q, policy) that the planner combines with it. The paper's claim is about the world model
+(paper §3), so this module measures each part on a **frozen probe set** per task, the same for every method
+and seed (docs: Evaluation, "Which part forgot"):
+
+* the probe of a grid task is every (state, action) of its room: 4 headings x 3 actions on each of the room's
+  cells, with the true next state, the task's true reward, and the discounted DP optimum ``Q*`` of the task
+  under the agent's discount (value iteration over the grid's exact transition table);
+* after each stage N, for every task k seen so far, with the model after N and the heads saved after k:
+
+  - ``dynamics_1step``: share of probe transitions the model predicts exactly (decoded to the lattice; the
+    coverage of task k's room);
+  - ``dynamics_hstep``: share of probe states from which an open-loop rollout of the model along the optimal
+    actions for H steps (the agent's planning horizon) ends on the true state;
+  - ``reward_error``: mean absolute error of the reward head against the task's true reward;
+  - ``value_error``: mean absolute error of min(Q1, Q2) against ``Q*``, divided by the mean ``|Q*|`` of the
+    probe (so 0 is exact and 1 is as large as the values themselves);
+  - ``policy_agreement``: share of probe states where the policy head's action is an optimal one;
+  - ``return_own_heads``: the return on task k of planning with the model and task k's heads (below), as a
+    fraction of the task's DP optimum. Planning with the model and the *true* reward is the zero-shot matrix
+    (:mod:`drago.eval.zero_shot`), which a unit records beside this.
+
+**Planning with heads** is exact dynamic programming over the model's lattice table, as the zero-shot planner
+does, with the learned reward in place of the true one and the learned value at the horizon: the best
+H-step return ``sum_t gamma^t r_hat + gamma^H V_hat(s_H)`` of each first action, replanned every step. It is
+what TD-MPC's planner approximates with sampling (paper §2), without the sampling noise, so two heads compare
+on the same footing as two models do in the zero-shot matrix.
+
+**The swap test** for an earlier task k after stage N (forgetting attribution, as representation-forgetting
+probes do in supervised continual learning): the return on task k of (a) the model and heads saved after k,
+(b) the model after N under the heads saved after k, (c) the model after N with the heads of k refit on task
+k's probe, and (d) the model after N with the true reward (the zero-shot matrix). a -> b is the whole loss,
+b -> c what a cheap head refit recovers (that knowledge was still in the model), and what c leaves is the
+model's own forgetting.
+
+**The refit** re-attaches the heads saved after k and trains them with the agent's own update (paper §2's
+losses, its optimizers at its learning rate) for :data:`REFIT_UPDATES` updates of H-step sequences that start
+on probe states and follow uniformly random actions through the true dynamics, paid the task's true reward:
+a fixed budget, the same for every method, about 2% of the updates of one task of ``minigrid-cpu``. It
+cannot teach the model anything: the update runs with ``train_world_model=False``, so the world model's
+optimizer never steps, the heads see the model's latents detached, and the model's weights are checked
+unchanged afterwards.
+
+PETS has no value or policy heads and a reward head of its own kind: for a PETS run only the dynamics rows
+are measured, and the others say so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from drago.agent.agent import Agent
+from drago.agent.buffer import Batch
+from drago.agent.networks import TaskHeads
+from drago.config import AgentConfig
+from drago.envs.tasks import GridTask, get_grid_task
+from drago.eval.coverage import GRID_DOMAIN, grid_transitions, task_room, transition_groups
+from drago.eval.zero_shot import (
+    LOST,
+    N_ACTIONS,
+    N_LATTICE,
+    N_STATES,
+    TIE_TOLERANCE,
+    Dynamics,
+    LatticeModel,
+    decode_obs,
+    lattice_model,
+    lattice_observations,
+    model_dynamics,
+    play,
+    state_index,
+    true_dynamics,
+)
+from drago.training.rundir import RunDirError, write_rows_csv
+from drago.training.rundir import run_checkpoints as _run_checkpoints
+
+__all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_UPDATES", "SWAP_FILE", "ComponentsError", "GridProbe",
+           "HeadsPlanner", "component_errors", "grid_probe", "heads_return", "refit_heads"]
+
+COMPONENTS = ("dynamics_1step", "dynamics_hstep", "reward_error", "value_error", "policy_agreement",
+              "return_own_heads")
+COMPONENTS_FILE = "components.csv"
+SWAP_FILE = "swap.csv"
+COMPONENT_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "component", "value", "note")
+SWAP_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "optimum", "saved", "moved", "refit",
+                "true_reward", "refit_updates")
+#: Head updates of the swap test's refit (see the module docstring).
+REFIT_UPDATES = 200
+#: Rows of each refit update's batch.
+REFIT_BATCH = 256
+#: Episodes of each planning return (one per start heading, as the zero-shot matrix plays).
+EPISODES = 4
+# Value iteration stops when no Q* changes by more than this (gamma = 0.99 converges in about 2,500 sweeps).
+_Q_TOLERANCE = 1e-9
+
+
+class ComponentsError(RunDirError):
+    """A run or request the component measures cannot serve; the message is one line."""
+
+
+# ---- the probe -----------------------------------------------------------------------------------------
+@lru_cache(maxsize=1)
+def _true_lattice() -> LatticeModel:
+    return lattice_model(true_dynamics)
+
+
+def _task(name: str, dense: bool | None) -> GridTask:
+    task = get_grid_task(name)
+    return task if dense is None else dataclasses.replace(task, dense=bool(dense))
+
+
+@lru_cache(maxsize=16)
+def optimal_q(task_name: str, discount: float, dense: bool | None = None) -> np.ndarray:
+    """(2917, 3) discounted optimal action values of a grid task under the true dynamics (value iteration);
+    ``dense`` None reads the task with its own reward."""
+    lattice = _true_lattice()
+    reward = lattice.rewards(_task(task_name, dense))
+    q = np.zeros((N_STATES, N_ACTIONS))
+    for _ in range(100_000):
+        updated = reward + discount * q[lattice.successor].max(axis=2)
+        if np.abs(updated - q).max() <= _Q_TOLERANCE:
+            q = updated
+            break
+        q = updated
+    q.setflags(write=False)
+    return q
+
+
+@dataclass(frozen=True)
+class GridProbe:
+    """A task's frozen probe: every (state, action) of its room.
+
+    Attributes:
+        task: the grid task.
+        obs, actions, next_obs: (n, 3) float32 observation, one-hot action and true next observation.
+        reward: (n,) the task's true reward of each transition.
+        q_star: (n,) the discounted DP optimum of each (state, action).
+        optimal: (n,) whether the action is an optimal one at its state.
+        states: (m,) lattice indices of the probe's states (every third row's state).
+        discount: the discount ``q_star`` was computed with.
+    """
+
+    task: GridTask
+    obs: np.ndarray
+    actions: np.ndarray
+    next_obs: np.ndarray
+    reward: np.ndarray
+    q_star: np.ndarray
+    optimal: np.ndarray
+    states: np.ndarray
+    discount: float
+
+
+@lru_cache(maxsize=16)
+def grid_probe(task_name: str, discount: float, dense: bool | None = None) -> GridProbe:
+    """The probe of a training room (start and goal in one room), the same for every run; ``dense`` None
+    reads the task with its own reward (a run's ``env.dense_reward`` otherwise).
+
+    Raises:
+        ComponentsError: a task that does not live in one room (a transfer task).
+    """
+    room = task_room(task_name)
+    if room is None:
+        raise ComponentsError(f"{task_name} does not live in one room; probes are defined for the training rooms")
+    data = grid_transitions()
+    rows = np.flatnonzero(transition_groups() == room)
+    obs, actions, next_obs = data.obs[rows], data.actions[rows], data.next_obs[rows]
+    index = state_index(decode_obs(torch.from_numpy(obs))).numpy()
+    task = _task(task_name, dense)
+    q = optimal_q(task_name, float(discount), dense)
+    q_rows = q[index, data.action_idx[rows]]
+    best = q[index].max(axis=1)
+    reward = _true_lattice().rewards(task)[index, data.action_idx[rows]]
+    return GridProbe(task=task, obs=obs, actions=actions, next_obs=next_obs, reward=reward,
+                     q_star=q_rows, optimal=q_rows >= best - 1e-6 * np.maximum(1.0, np.abs(best)),
+                     states=index[::N_ACTIONS], discount=float(discount))
+
+
+# ---- planning with heads -------------------------------------------------------------------------------
+def _latents(model: torch.nn.Module, obs: np.ndarray | torch.Tensor) -> torch.Tensor:
+    obs = obs.float() if isinstance(obs, torch.Tensor) else torch.from_numpy(np.array(obs, dtype=np.float32))
+    with torch.inference_mode():
+        return model.encode(obs).float()
+
+
+def _head_values(model: torch.nn.Module, heads: TaskHeads) -> tuple[np.ndarray, np.ndarray]:
+    """The heads on every lattice state: reward (2917, 3) and terminal value (2917,), 0 from LOST."""
+    z = _latents(model, lattice_observations())
+    eye = torch.eye(N_ACTIONS)
+    with torch.inference_mode():
+        reward = torch.stack([heads.predict_reward(z, eye[a].expand(len(z), -1)) for a in range(N_ACTIONS)], dim=1)
+        value = heads.q_values(z, heads.act(z, 0.0, deterministic=True)).min(0).values
+    rewards, values = np.zeros((N_STATES, N_ACTIONS)), np.zeros(N_STATES)
+    rewards[:N_LATTICE], values[:N_LATTICE] = reward.double().numpy(), value.double().numpy()
+    return rewards, values
+
+
+class HeadsPlanner:
+    """Receding-horizon DP over a model's lattice table with a task's learned reward and value (see the module
+    docstring): the best ``horizon``-step return ``sum gamma^t r_hat + gamma^H V_hat`` of each first action."""
+
+    def __init__(self, lattice: LatticeModel, rewards: np.ndarray, values: np.ndarray, horizon: int,
+                 discount: float):
+        self.successor = lattice.successor
+        self.reward = rewards
+        self.discount = float(discount)
+        value = values.copy()
+        for _ in range(int(horizon) - 1):
+            value = (rewards + self.discount * value[self.successor]).max(axis=1)
+        self.last = value  # the best (H-1)-step return plus the terminal value, from each state
+
+    def action_values(self, state: int, steps_left: int) -> np.ndarray:
+        return self.reward[state] + self.discount * self.last[self.successor[state]]
+
+    def act(self, state: int, steps_left: int, generator: torch.Generator) -> int:
+        q = self.action_values(state, steps_left).tolist()
+        top = max(q)
+        best = [a for a, value in enumerate(q) if value >= top - TIE_TOLERANCE * max(1.0, abs(top))]
+        if len(best) == 1:
+            return best[0]
+        return best[int(torch.randint(len(best), (1,), generator=generator))]
+
+
+def heads_return(model: torch.nn.Module, heads: TaskHeads, task: GridTask, horizon: int, discount: float,
+                 seed: int = 0, stage: int = 0, lattice: LatticeModel | None = None) -> np.ndarray:
+    """(EPISODES,) returns on ``task`` of planning with ``model`` and ``heads`` (:class:`HeadsPlanner`)."""
+    lattice = lattice if lattice is not None else lattice_model(model_dynamics(model))
+    rewards, values = _head_values(model, heads)
+    planner = HeadsPlanner(lattice, rewards, values, horizon, discount)
+    return play(lattice, task, EPISODES, seed=seed, stage=stage, planner=planner)
+
+
+# ---- component errors ----------------------------------------------------------------------------------
+def _rollout_hits(dynamics: Dynamics, probe: GridProbe, horizon: int) -> float:
+    """Share of probe states whose H-step open-loop model rollout along optimal actions ends on the truth."""
+    truth = _true_lattice().successor
+    q = optimal_q(probe.task.name, probe.discount, probe.task.dense)
+    state = probe.states.copy()
+    z = torch.from_numpy(lattice_observations()[state])
+    eye = torch.eye(N_ACTIONS)
+    for _ in range(int(horizon)):
+        action = q[state].argmax(axis=1)
+        z = dynamics(z, eye[torch.from_numpy(action)])
+        state = truth[state, action]
+    predicted = state_index(decode_obs(z)).numpy()
+    return float((predicted == state).mean())
+
+
+def component_errors(model: torch.nn.Module, heads: TaskHeads | None, probe: GridProbe,
+                     horizon: int) -> dict[str, float]:
+    """Every component measure but the planning return, of ``model`` with task ``probe.task``'s ``heads``
+    (None: a model without heads, only the dynamics are measured)."""
+    dynamics = model_dynamics(model)
+    obs = torch.from_numpy(probe.obs)
+    predicted = dynamics(obs, torch.from_numpy(probe.actions))
+    exact = state_index(decode_obs(predicted)) == state_index(decode_obs(torch.from_numpy(probe.next_obs)))
+    out = {"dynamics_1step": float(exact.double().mean()),
+           "dynamics_hstep": _rollout_hits(dynamics, probe, horizon)}
+    if heads is None:
+        return out
+    z = _latents(model, obs)
+    actions = torch.from_numpy(probe.actions)
+    with torch.inference_mode():
+        reward = heads.predict_reward(z, actions).double().numpy()
+        q = heads.q_values(z, actions).min(0).values.double().numpy()
+        chosen = heads.act(z[::N_ACTIONS], 0.0, deterministic=True).argmax(dim=1).numpy()
+    optimal = probe.optimal.reshape(-1, N_ACTIONS)
+    out["reward_error"] = float(np.abs(reward - probe.reward).mean())
+    out["value_error"] = float(np.abs(q - probe.q_star).mean() / max(np.abs(probe.q_star).mean(), 1e-12))
+    out["policy_agreement"] = float(optimal[np.arange(len(chosen)), chosen].mean())
+    return out
+
+
+# ---- the refit -----------------------------------------------------------------------------------------
+def _refit_batch(probe: GridProbe, horizon: int, generator: np.random.Generator) -> Batch:
+    """REFIT_BATCH (H+1)-step sequences from probe states along random actions, through the true dynamics."""
+    lattice = _true_lattice()
+    reward = lattice.rewards(probe.task)
+    state = probe.states[generator.integers(len(probe.states), size=REFIT_BATCH)]
+    obs = lattice_observations()
+    eye = np.eye(N_ACTIONS, dtype=np.float32)
+    start = obs[state]
+    actions, rewards, following = [], [], []
+    for _ in range(int(horizon) + 1):
+        action = generator.integers(N_ACTIONS, size=REFIT_BATCH)
+        rewards.append(reward[state, action])
+        state = lattice.successor[state, action]
+        actions.append(eye[action])
+        following.append(obs[state])
+    return Batch(obs=torch.from_numpy(start), actions=torch.from_numpy(np.stack(actions)),
+                 rewards=torch.from_numpy(np.stack(rewards).astype(np.float32)),
+                 next_obs=torch.from_numpy(np.stack(following)), weights=torch.ones(REFIT_BATCH),
+                 indices=np.zeros(REFIT_BATCH, dtype=np.int64))
+
+
+def refit_heads(model: torch.nn.Module, heads: TaskHeads, probe: GridProbe, cfg: AgentConfig,
+                updates: int = REFIT_UPDATES, seed: int = 0) -> TaskHeads:
+    """A copy of ``heads`` trained on ``probe``'s task over the frozen ``model`` (see the module docstring).
+
+    Raises:
+        RuntimeError: the model's weights changed (they cannot, by construction; checked all the same).
+    """
+    before = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    frozen = torch.optim.SGD(model.parameters(), lr=0.0)  # never stepped: train_world_model=False
+    cfg = dataclasses.replace(cfg, precision="float32", compile="false")
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        agent = Agent(model, frozen, cfg, discrete=True)
+        agent.heads.load_state_dict(heads.state_dict())
+        generator = np.random.default_rng(seed)
+        for step in range(int(updates)):
+            agent.update(_refit_batch(probe, cfg.horizon, generator), step, train_world_model=False)
+    for key, value in model.state_dict().items():
+        if not torch.equal(value, before[key]):
+            raise RuntimeError(f"the refit changed the world model's {key}; it must only train heads")
+    return agent.heads
+
+
+# ---- a run ---------------------------------------------------------------------------------------------
+def _rows_note(kind: str) -> str:
+    return {"pets": "PETS has no TD-MPC heads: only the dynamics are measured"}.get(kind, "")
+
+
+def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, Any]] = (),
+                      device: str = "cpu") -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The component rows (stage x task x component) and the swap-test rows of a grid run's checkpoints.
+
+    ``zero_shot_rows`` (the run's zero-shot matrix, at each task's own reward) fill the swap test's
+    true-reward column; without them it stays empty.
+
+    Raises:
+        ComponentsError: not a grid run, or no finished task.
+        drago.training.checkpoint.CheckpointError: a corrupt checkpoint.
+    """
+    from drago.training.checkpoint import load_task_checkpoint
+
+    run_dir = Path(run_dir)
+    cfg, checkpoints = _run_checkpoints(run_dir, ComponentsError, lambda c: None if c.env.domain == GRID_DOMAIN else
+                                        "component retention is measured on the grid only for now")
+    name = f"{cfg.method.name}/seed{cfg.train.seed}"
+    kind = cfg.agent.kind
+    horizon, discount = int(cfg.agent.horizon), float(cfg.agent.discount)
+    loaded = [load_task_checkpoint(c.path, device) for c in checkpoints]
+    models = [c.world_model.eval() for c in loaded]
+    heads: list[TaskHeads | None] = []
+    for c in loaded:
+        if kind == "pets" or "learner" not in c.data:
+            heads.append(None)
+            continue
+        h = TaskHeads(c.spec.obs_dim, c.spec.action_dim, c.config.agent.mlp_dim, True,
+                      fast_tanh=c.config.agent.fast_tanh)
+        h.load_state_dict(c.data["learner"])
+        heads.append(h.eval())
+    lattices = [lattice_model(model_dynamics(model)) for model in models]
+    true_reward = {(int(r["stage"]), r["task"]): r for r in zero_shot_rows}
+    rows, swaps = [], []
+    own_return: dict[tuple[int, int], float] = {}
+    for n, checkpoint in enumerate(checkpoints):
+        for k in range(n + 1):
+            task = checkpoints[k].task
+            if task_room(task) is None:
+                continue
+            probe = grid_probe(task, discount, cfg.env.dense_reward)
+            base = {"run": name, "method": cfg.method.name, "seed": cfg.train.seed, "stage": checkpoint.stage,
+                    "stage_task": checkpoint.task, "task": task}
+            measures = component_errors(models[n], heads[k], probe, horizon)
+            if heads[k] is not None:
+                returns = heads_return(models[n], heads[k], probe.task, horizon, discount, seed=cfg.train.seed,
+                                       stage=checkpoint.stage, lattice=lattices[n])
+                own_return[(n, k)] = float(returns.mean())
+                measures["return_own_heads"] = own_return[(n, k)] / _optimum(probe.task)
+            note = _rows_note(kind)
+            rows += [dict(base, component=c, value=measures.get(c, math.nan), note="" if c in measures else note)
+                     for c in COMPONENTS]
+    for n, checkpoint in enumerate(checkpoints):
+        for k in range(n):
+            task = checkpoints[k].task
+            if heads[k] is None or task_room(task) is None:
+                continue
+            probe = grid_probe(task, discount, cfg.env.dense_reward)
+            refit = refit_heads(models[n], heads[k], probe, loaded[n].config.agent, seed=cfg.train.seed)
+            refit_return = heads_return(models[n], refit, probe.task, horizon, discount, seed=cfg.train.seed,
+                                        stage=checkpoint.stage, lattice=lattices[n])
+            zero = true_reward.get((checkpoint.stage, task))
+            swaps.append({"run": name, "method": cfg.method.name, "seed": cfg.train.seed,
+                          "stage": checkpoint.stage, "stage_task": checkpoint.task, "task": task,
+                          "optimum": _optimum(probe.task), "saved": own_return[(k, k)], "moved": own_return[(n, k)],
+                          "refit": float(refit_return.mean()),
+                          "true_reward": "" if zero is None else float(zero["return"]),
+                          "refit_updates": REFIT_UPDATES})
+    return rows, swaps
+
+
+def _optimum(task: GridTask) -> float:
+    from drago.envs import task_optimum
+
+    return float(task_optimum(GRID_DOMAIN, task.name, task.dense))
+
+
+def write_components_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
+    return write_rows_csv(rows, COMPONENT_COLUMNS, path)
+
+
+def write_swap_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
+    return write_rows_csv(rows, SWAP_COLUMNS, path)

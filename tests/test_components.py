@@ -1,0 +1,116 @@
+"""Which part forgot (docs: Evaluation, "Which part forgot"): component measures and the swap test on hand-made
+models of the grid, and the byte accounting of what each method carries across a task boundary."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from drago.agent.networks import TaskHeads
+from drago.config import AgentConfig
+from drago.envs import task_optimum
+from drago.eval.components import (ComponentsError, component_errors, grid_probe, heads_return, optimal_q,
+                                   refit_heads)
+from drago.eval.costs import carried_bytes
+from drago.eval.zero_shot import true_dynamics
+
+CFG = AgentConfig(mlp_dim=64, horizon=5)
+
+
+class TrueModel(torch.nn.Module):
+    """The grid's exact dynamics in the world model's shape: the latent is the observation."""
+
+    obs_dim = action_dim = 3
+
+    def __init__(self):
+        super().__init__()
+        self.unused = torch.nn.Parameter(torch.zeros(1))  # something the refit could wrongly train
+
+    def encode(self, obs: torch.Tensor) -> torch.Tensor:
+        return obs
+
+    def forward(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return true_dynamics(z, action)
+
+
+class FrozenInPlace(TrueModel):
+    """A corrupted model: it believes no action ever moves the agent."""
+
+    def forward(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return z
+
+
+def fraction(model, heads, task="room1") -> float:
+    probe = grid_probe(task, CFG.discount)
+    return float(heads_return(model, heads, probe.task, CFG.horizon, CFG.discount).mean()) / task_optimum("minigrid", task)
+
+
+@pytest.fixture(scope="module")
+def learned_heads() -> TaskHeads:
+    """Heads trained on room 1 over the true model (the refit from random weights): what "saved after k" holds."""
+    torch.manual_seed(0)
+    return refit_heads(TrueModel(), TaskHeads(3, 3, CFG.mlp_dim, True), grid_probe("room1", CFG.discount), CFG)
+
+
+def test_the_probe_is_room_one_with_its_dp_values():
+    probe = grid_probe("room1", CFG.discount)
+    assert len(probe.obs) == len(probe.states) * 3 and len(probe.states) % 4 == 0
+    # The dense reward pays 3 on the goal cell and repeatedly while the agent stays there: Q* there is 3 / (1 - γ).
+    assert probe.q_star.max() == pytest.approx(3 / (1 - CFG.discount), rel=1e-6)
+    # Bellman optimality holds on the probe rows: Q*(s, a) = r + γ max Q*(s', ·).
+    q = optimal_q("room1", CFG.discount)
+    from drago.eval.zero_shot import decode_obs, state_index
+    following = state_index(decode_obs(torch.from_numpy(probe.next_obs))).numpy()
+    np.testing.assert_allclose(probe.q_star, probe.reward + CFG.discount * q[following].max(axis=1), atol=1e-6)
+    assert 0 < probe.optimal.mean() < 1
+    with pytest.raises(ComponentsError, match="training rooms"):
+        grid_probe("room1to2", CFG.discount)
+
+
+def test_a_perfect_model_scores_no_dynamics_error():
+    measures = component_errors(TrueModel(), None, grid_probe("room2", CFG.discount), CFG.horizon)
+    assert measures == {"dynamics_1step": 1.0, "dynamics_hstep": 1.0}
+    broken = component_errors(FrozenInPlace(), None, grid_probe("room2", CFG.discount), CFG.horizon)
+    assert broken["dynamics_1step"] < 0.1 and broken["dynamics_hstep"] == 0.0
+
+
+def test_heads_that_fit_the_task_plan_well_over_a_perfect_model(learned_heads):
+    measures = component_errors(TrueModel(), learned_heads, grid_probe("room1", CFG.discount), CFG.horizon)
+    assert measures["reward_error"] < 0.15 and measures["policy_agreement"] > 0.4
+    assert fraction(TrueModel(), learned_heads) > 0.6
+
+
+def test_corrupted_heads_are_recovered_by_the_refit_so_the_loss_is_the_heads(learned_heads):
+    torch.manual_seed(1)
+    corrupted = TaskHeads(3, 3, CFG.mlp_dim, True)  # the model is perfect, the heads know nothing
+    saved, moved = fraction(TrueModel(), learned_heads), fraction(TrueModel(), corrupted)
+    refit = refit_heads(TrueModel(), corrupted, grid_probe("room1", CFG.discount), CFG, seed=2)
+    recovered = fraction(TrueModel(), refit)
+    assert moved < 0.1 < saved
+    assert recovered > 0.6, "a perfect model must support the task once the heads are refit"
+
+
+def test_corrupted_dynamics_are_not_recovered_by_the_refit_so_the_loss_is_the_model(learned_heads):
+    model = FrozenInPlace()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    moved = fraction(model, learned_heads)
+    refit = refit_heads(model, learned_heads, grid_probe("room1", CFG.discount), CFG, seed=2)
+    assert moved < 0.1 and fraction(model, refit) < 0.1
+    assert all(torch.equal(v, before[k]) for k, v in model.state_dict().items())  # the refit trains heads only
+
+
+def test_byte_accounting_matches_the_state_dicts_each_method_keeps():
+    world = torch.nn.Linear(6, 3)
+    vae = torch.nn.Sequential(torch.nn.Linear(6, 4), torch.nn.Linear(4, 6))
+    fisher = {name: torch.ones_like(p) for name, p in world.named_parameters()}
+    reservoir = {"obs": torch.zeros(50, 3), "actions": torch.zeros(50, 3, dtype=torch.float64), "size": 50}
+    world_bytes = sum(t.numel() * t.element_size() for t in world.state_dict().values())
+    vae_bytes = sum(t.numel() * t.element_size() for t in vae.state_dict().values())
+    drago = carried_bytes(world.state_dict(), {"vae": vae.state_dict(), "threshold": 9.5, "tasks_seen": 2})
+    assert drago["world_model"] == world_bytes == 4 * (18 + 3) and drago["generator"] == vae_bytes
+    ewc = carried_bytes(world.state_dict(), {"fisher": fisher, "anchor": world.state_dict(), "tasks": 1})
+    assert ewc["fisher"] == ewc["anchor"] == world_bytes
+    replay = carried_bytes(world.state_dict(), {"reservoir": reservoir})
+    assert replay["raw_transitions"] == 50 * 3 * 4 + 50 * 3 * 8
+    assert carried_bytes(world.state_dict(), {}) == {**dict.fromkeys(drago, 0), "world_model": world_bytes}

@@ -39,6 +39,8 @@ from drago.eval.coverage import COVERAGE_FILE, write_coverage_csv
 from drago.eval.coverage import coverage_of_run as coverage
 from drago.eval.coverage import format_table as format_coverage_table
 from drago.eval.coverage import run_checkpoints as coverage_checkpoints
+from drago.eval.components import components_checkpoints, components_of_run, evaluate_components
+from drago.eval.costs import costs_of_run
 from drago.eval.heldout import RETENTION_FILE, retention_matrix, write_retention_csv
 from drago.eval.reviewer_pay import StagePay, reviewer_pay_of_run
 from drago.eval.zero_shot import ZERO_SHOT_FILE, ZeroShotError, write_zero_shot_csv, zero_shot_matrix
@@ -62,7 +64,8 @@ __all__ = [
     "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
     "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
     "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
-    "reviewer_pay_of_run", "RecordError", "read_record", "record_run",
+    "reviewer_pay_of_run", "RecordError", "read_record", "record_run", "components_checkpoints",
+    "components_of_run", "costs_of_run", "evaluate_components",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",

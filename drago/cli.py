@@ -88,6 +88,16 @@ def _parser() -> argparse.ArgumentParser:
                                 "0: deterministic)")
     zero_shot.add_argument("--out", type=Path, default=None, metavar="CSV",
                            help="also write every run's rows into this one CSV")
+    components = eval_sub.add_parser(
+        "components", help="which part forgot: each part of the agent on every earlier task, the swap test, and "
+                           "what the run carries and spends (grid)",
+        usage="drago eval components RUN_DIR [RUN_DIR ...]",
+        description="Measures the world model's one- and H-step dynamics, each task's reward, value and policy "
+                    "heads and planning with them on every earlier task's probe after each stage, the swap test "
+                    "(saved, moved and refit heads, true reward) and the bytes carried across each task boundary "
+                    "(docs: Evaluation, which part forgot). Writes components.csv, swap.csv and costs.csv into "
+                    "each run directory.")
+    components.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     _add_transfer_parser(sub)
     _add_report_parser(sub)
     _add_record_parser(sub)
@@ -221,6 +231,25 @@ def _cmd_eval_zero_shot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_components(args: argparse.Namespace) -> int:
+    from drago.api import components_checkpoints, evaluate_components
+
+    for run_dir in args.run_dirs:
+        components_checkpoints(run_dir)
+    for run_dir in args.run_dirs:
+        swaps, written = evaluate_components(run_dir)
+        print(f"{run_dir}: return on an earlier task as a fraction of its DP optimum (swap test)")
+        print(f"  {'task':<8} {'after':>5} {'saved':>6} {'moved':>6} {'refit':>6} {'true reward':>11}")
+        for row in swaps:
+            share = {key: (f"{float(row[key]) / row['optimum']:.2f}" if row[key] != "" else "–")
+                     for key in ("saved", "moved", "refit", "true_reward")}
+            print(f"  {row['task']:<8} {row['stage']:>5} {share['saved']:>6} {share['moved']:>6} {share['refit']:>6} "
+                  f"{share['true_reward']:>11}")
+        for path in written:
+            print(f"wrote {path}")
+    return 0
+
+
 def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: str, title: str, table) -> list[dict]:
     """Measure every run's world models into a CSV per run (and optionally one for all), with a text table;
     returns every run's rows."""
@@ -244,7 +273,7 @@ def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: st
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     return {"coverage": _cmd_eval_coverage, "heldout": _cmd_eval_heldout,
-            "zero-shot": _cmd_eval_zero_shot}[args.eval_command](args)
+            "zero-shot": _cmd_eval_zero_shot, "components": _cmd_eval_components}[args.eval_command](args)
 
 
 COMMANDS = {"train": _cmd_train, "resume": _cmd_resume, "list": _cmd_list, "eval": _cmd_eval}

@@ -720,8 +720,8 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
     """Run every unfinished job of ``plan``, then write the report.
 
     Jobs run ``plan.jobs`` at a time as child processes (``python -m drago ARGS``, which is ``drago ARGS``
-    dying with this process), their output appended to ``job.log``. Runs start before transfers;
-    a transfer starts once its run has finished; if the run fails, its transfers are not started.
+    dying with this process), their output appended to ``job.log``. Runs start before transfers
+    (with records, a unit's transfers and record before new runs); a transfer starts once its run has finished; if the run fails, its transfers are not started.
     ``in_process``, the command line's ``main``, runs the jobs one after the other in this process
     instead (for tests: a patched function is seen by the runs).
 
@@ -749,11 +749,13 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
                     job.status = "blocked"
                     line(job, f"not started: {job.label} ({'its run' if job.kind == 'transfer' else 'a job of its unit'}"
                               " failed)")
-                # Records first, to keep a finished unit even if the study is stopped; then runs before
-                # transfers: a run is the longest job and unlocks four, so starting runs first keeps the
-                # cores busy to the end instead of leaving one last run alone.
+                # Without records, runs before transfers: a run is the longest job and unlocks four, so
+                # starting runs first keeps the cores busy to the end instead of leaving one last run alone.
+                # With records, finishing units comes first (record, then transfers): a study stopped at any
+                # time keeps every unit it could finish.
+                order = ("record", "transfer", "run") if plan.records is not None else ("run", "transfer")
                 ready = sorted((j for j in todo if all(n.status == "done" for n in _waits_for(j))),
-                               key=lambda j: ("record", "run", "transfer").index(j.kind))
+                               key=lambda j: order.index(j.kind))
                 while ready and len(running) < plan.jobs:
                     job = ready.pop(0)
                     todo.remove(job)

@@ -114,3 +114,31 @@ def test_byte_accounting_matches_the_state_dicts_each_method_keeps():
     replay = carried_bytes(world.state_dict(), {"reservoir": reservoir})
     assert replay["raw_transitions"] == 50 * 3 * 4 + 50 * 3 * 8
     assert carried_bytes(world.state_dict(), {}) == {**dict.fromkeys(drago, 0), "world_model": world_bytes}
+
+
+def test_eval_components_writes_its_files_and_the_report_shows_them(tmp_path, capsys):
+    from drago import cli
+
+    tiny = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100",
+            "train.tensorboard=false", "agent.mlp_dim=16", "agent.batch_size=16", "agent.iterations=1",
+            "agent.num_samples=8", "agent.num_elites=2", "train.threads=1", "env.tasks=[room1,room2]"]
+    run = tmp_path / "run"
+    assert cli.main(["train", "smoke", "--method", "replay", "--out", str(run), "--no-progress", *tiny]) == 0
+    capsys.readouterr()
+    assert cli.main(["eval", "components", str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "room1" in out and "saved" in out and f"wrote {run / 'swap.csv'}" in out
+    import csv
+    with (run / "components.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    # stage 1: room1; stage 2: room1 and room2; six parts each
+    assert len(rows) == 3 * 6 and {r["component"] for r in rows} >= {"dynamics_1step", "return_own_heads"}
+    with (run / "costs.csv").open() as handle:
+        costs = list(csv.DictReader(handle))
+    # replay is the one method that carries raw transitions of earlier tasks
+    assert [r["raw_data"] for r in costs] == ["True", "True"] and int(costs[0]["bytes_raw_transitions"]) > 0
+    assert cli.main(["report", str(run), "--out", str(tmp_path / "report")]) == 0
+    page = (tmp_path / "report" / "report.md").read_text()
+    assert "## The swap test" in page and "## What each method stores and spends" in page
+    assert cli.main(["eval", "components", str(tmp_path)]) == 2
+    assert "is not a drago run directory (no config.yaml)" in capsys.readouterr().err

@@ -166,3 +166,16 @@ def test_record_command_refuses_an_unfinished_run(tmp_path, capsys):
     with pytest.raises(ReportError):
         with opened_runs([tmp_path / "nothing-here"]):
             pass
+
+
+def test_with_records_a_finished_runs_transfers_and_record_come_before_new_runs(tmp_path, monkeypatch):
+    started: list[str] = []
+
+    def fake_main(argv: list[str]) -> int:
+        started.append(argv[0])
+        return cli.main(argv)
+
+    result = run_study(plan(tmp_path / "s", tmp_path / "r"), echo=lambda line: None, in_process=fake_main)
+    assert result.ok
+    # one run, its four transfers and its record, then the next unit
+    assert started == ["train", *["transfer"] * 4, "record", "train", *["transfer"] * 4, "record"]

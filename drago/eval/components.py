@@ -86,7 +86,8 @@ from drago.training.rundir import RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
 
 __all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_UPDATES", "SWAP_FILE", "ComponentsError", "GridProbe",
-           "HeadsPlanner", "component_errors", "grid_probe", "heads_return", "refit_heads"]
+           "HeadsPlanner", "component_errors", "components_checkpoints", "components_of_run", "evaluate_components",
+           "grid_probe", "heads_return", "refit_heads", "write_components_csv", "write_swap_csv"]
 
 COMPONENTS = ("dynamics_1step", "dynamics_hstep", "reward_error", "value_error", "policy_agreement",
               "return_own_heads")
@@ -346,8 +347,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
     from drago.training.checkpoint import load_task_checkpoint
 
     run_dir = Path(run_dir)
-    cfg, checkpoints = _run_checkpoints(run_dir, ComponentsError, lambda c: None if c.env.domain == GRID_DOMAIN else
-                                        "component retention is measured on the grid only for now")
+    cfg, checkpoints = components_checkpoints(run_dir)
     name = f"{cfg.method.name}/seed{cfg.train.seed}"
     kind = cfg.agent.kind
     horizon, discount = int(cfg.agent.horizon), float(cfg.agent.discount)
@@ -406,6 +406,33 @@ def _optimum(task: GridTask) -> float:
     from drago.envs import task_optimum
 
     return float(task_optimum(GRID_DOMAIN, task.name, task.dense))
+
+
+def components_checkpoints(run_dir: str | Path):
+    """The run's config and finished checkpoints, refusing a run the component measures cannot serve (cheap:
+    files only, so a command given several runs refuses a bad one before measuring any)."""
+    return _run_checkpoints(Path(run_dir), ComponentsError, lambda c: None if c.env.domain == GRID_DOMAIN else
+                            "component retention is measured on the grid only for now")
+
+
+def evaluate_components(run_dir: str | Path) -> tuple[list[dict[str, Any]], list[Path]]:
+    """Measure a grid run's components, swap test and costs into ``components.csv``, ``swap.csv`` and
+    ``costs.csv`` in the run directory (``drago eval components``); returns the swap rows and the files.
+
+    The swap test's true-reward column is the run's ``zero_shot.csv`` where it has the training rooms at the
+    evaluation's defaults, else those rows are computed (and not written).
+    """
+    from drago.eval.costs import COSTS_FILE, costs_of_run, write_costs_csv
+    from drago.eval.zero_shot import zero_shot_matrix
+
+    run_dir = Path(run_dir)
+    cfg, checkpoints = components_checkpoints(run_dir)
+    rooms = [c.task for c in checkpoints if task_room(c.task) is not None]
+    zero_shot = zero_shot_matrix(run_dir, tasks=sorted(set(rooms), key=rooms.index)) if rooms else []
+    rows, swaps = components_of_run(run_dir, zero_shot)
+    written = [write_components_csv(rows, run_dir / COMPONENTS_FILE), write_swap_csv(swaps, run_dir / SWAP_FILE),
+               write_costs_csv(costs_of_run(run_dir), run_dir / COSTS_FILE)]
+    return swaps, written
 
 
 def write_components_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:

@@ -9,6 +9,7 @@ from pathlib import Path
 from drago.eval.coverage import (
     GRID_DOMAIN,
 )
+from drago.report.components import components_section
 from drago.report.content import Figure, Findings, Notes, Section
 from drago.report.figures import CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, curves_png, heatmap_figure, transfer_png
 from drago.report.render import REPORT_HTML, REPORT_MD, render_html, render_markdown
@@ -124,6 +125,7 @@ def _build_report(found: list[tuple[Path, str]], out_dir: str | Path) -> tuple[P
                                "light = well predicted, one colour scale for all panels, walls and blocks "
                                "grey. The stage's task start (○) and goal (★) are marked; a red × is a cell "
                                "with a non-finite prediction.", heatmap, HEATMAP_PNG))
+    sections += components_section(groups, findings)
     sections += visitation_section(groups)
     sections += reviewer_pay_section(groups)
     reviewer_reward = reviewer_reward_figure(groups, colours)

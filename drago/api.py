@@ -56,7 +56,7 @@ from drago.training.checkpoint import CheckpointError, NonFiniteCheckpoint
 from drago.training.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
 from drago.training.records import RecordError, read_record
 from drago.training.rundir import RunDirError, read_run_config
-from drago.training.runs import Run
+from drago.training.runs import Record, Run
 from drago.training.trainer import Trainer, TrainingDiverged
 
 __all__ = [
@@ -67,7 +67,7 @@ __all__ = [
     "reviewer_pay_of_run", "RecordError", "read_record", "record_run", "components_checkpoints",
     "components_of_run", "costs_of_run", "evaluate_components",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
-    "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
+    "Record", "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",
     "describe_settings", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
     "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",

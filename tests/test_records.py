@@ -10,6 +10,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from drago import cli
@@ -179,3 +180,23 @@ def test_with_records_a_finished_runs_transfers_and_record_come_before_new_runs(
     assert result.ok
     # one run, its four transfers and its record, then the next unit
     assert started == ["train", *["transfer"] * 4, "record", "train", *["transfer"] * 4, "record"]
+
+
+def test_a_record_reads_like_its_run_directory_from_python(recorded):
+    import drago
+
+    out, records = recorded
+    record, run = drago.Record(records / "continual" / "seed1.json.gz"), drago.Run(out / "continual" / "seed1")
+    assert record.config == run.config and record.tasks == run.tasks and record.complete
+    assert record.metrics("eval", as_frame=False).keys() == run.metrics("eval", as_frame=False).keys()
+    np.testing.assert_array_equal(record.metrics("eval", as_frame=False)["episode_reward"],
+                                  run.metrics("eval", as_frame=False)["episode_reward"])
+    assert len(record.transfers()) == 4 and record.evaluation("costs") and record.evaluation("components")
+    assert record.provenance["cpu"] and record.protocol["digest"]
+    with pytest.raises(drago.RunDirError, match="keeps no checkpoints"):
+        record.world_model(1)
+    folder = record.path
+    del record
+    import gc
+    gc.collect()
+    assert not folder.exists()

@@ -117,3 +117,57 @@ class Run:
         """The world model after ``stage`` (a torch module in eval mode; :func:`drago.load_world_model`
         gives a numpy predictor of the same checkpoint)."""
         return load_task_checkpoint(self.checkpoint(stage), device).world_model.eval()
+
+
+class Record(Run):
+    """A run's record (``*.json.gz``, docs: Command line, "Records"), read like a run directory:
+    ``drago.Record("results/grid/drago/seed1.json.gz")``. Its logs, summary and the evaluations made from
+    its checkpoints are there; the checkpoints themselves are not.
+
+    Attributes:
+        record_path: the record file.
+        protocol: what decides the unit's results, with its digest.
+        provenance: drago's version, the commit, the machine, threads, device and when it was recorded.
+        path: a private folder the record's files are read from (removed with the object).
+
+    Raises:
+        drago.training.records.RecordError: a corrupt record, or one of another format version (one line).
+    """
+
+    def __init__(self, path: str | Path):
+        import shutil
+        import tempfile
+        import weakref
+
+        from drago.training.records import materialize, read_record
+
+        record = read_record(path)
+        self.record_path = Path(path)
+        self.protocol: dict[str, Any] = record["protocol"]
+        self.provenance: dict[str, Any] = record["provenance"]
+        folder = tempfile.mkdtemp(prefix="drago-record-")
+        weakref.finalize(self, shutil.rmtree, folder, True)
+        super().__init__(materialize(record, folder))
+
+    def __repr__(self) -> str:
+        return f"Record({str(self.record_path)!r}: {self.config.method.name}, seed {self.config.train.seed})"
+
+    def evaluation(self, name: str) -> list[dict[str, str]]:
+        """The rows of an evaluation file the unit recorded: ``coverage``, ``zero_shot``, ``components``,
+        ``swap``, ``costs`` or ``retention`` (empty when the record has none)."""
+        file = self.path / f"{name}.csv"
+        if not file.is_file():
+            return []
+        with file.open(newline="") as handle:
+            return list(csv.DictReader(handle))
+
+    def transfers(self) -> list[Run]:
+        """The unit's transfer runs, each read like a run directory."""
+        return [Run(config.parent) for config in sorted((self.path / "transfer").glob("*/config.yaml"))]
+
+    def checkpoints(self) -> list[RunCheckpoint]:
+        return []
+
+    def checkpoint(self, stage: int) -> Path:
+        raise RunDirError(f"{self.record_path} is a record: it keeps no checkpoints (they stay on the machine "
+                          "that trained the run)")

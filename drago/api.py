@@ -105,8 +105,12 @@ def train(cfg: Config, out: str | Path | None = None, force: bool = False, progr
     :func:`resume` (``resume(path).run()``).
 
     Raises:
-        RunDirError: an existing run directory; ConfigError: a bad config.
+        RunDirError: an existing run directory; ConfigError: a bad config (a value of the wrong type or out of
+            range, checked before anything is written).
     """
+    from drago.config import validate
+
+    validate(cfg)  # a config changed in Python since load_config is held to the same rules
     run_dir = Path(out) if out is not None else default_run_dir(cfg)
     trainer = new_run(check_method(cfg), run_dir, force=force, progress=progress)
     try:

@@ -32,8 +32,29 @@ class ConfigError(ValueError):
     """A bad preset, key or value; the message is one line meant for the user."""
 
 
+class _Section:
+    """A config section that refuses attributes it does not declare: ``cfg.train.steps_per_taks = 100`` (a
+    typo) is an error naming the setting, not a silent no-op."""
+
+    section = ""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        declared = [f.name for f in fields(self)] if dataclasses.is_dataclass(self) else []
+        if declared and name not in declared:
+            raise ConfigError(_unknown(f"{self.section}.{name}", [f"{self.section}.{d}" for d in declared]))
+        object.__setattr__(self, name, value)
+
+
+def _unknown(key: str, valid: list[str]) -> str:
+    import difflib
+
+    close = difflib.get_close_matches(key, valid, n=1)
+    hint = f"did you mean {close[0]}? " if close else ""
+    return f"unknown setting '{key}'; {hint}run `drago list --settings` for the valid keys"
+
+
 @dataclass
-class EnvConfig:
+class EnvConfig(_Section):
     """Which world and which sequence of tasks."""
 
     # minigrid, cheetah or walker (DeepMind Control; needs the dmc extra), a registered domain (`drago list`),
@@ -46,7 +67,7 @@ class EnvConfig:
 
 
 @dataclass
-class AgentConfig:
+class AgentConfig(_Section):
     """The TD-MPC agent as modified in DRAGO (paper §2; docs: Design, the agent), or PETS (docs: Methods, PETS)."""
 
     # tdmpc: TD-MPC, the paper's agent; pets: PETS (Chua et al. 2018), the agent of the paper's Appendix E. The
@@ -115,7 +136,7 @@ class AgentConfig:
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(_Section):
     """Budgets, evaluation, checkpoints and the machine."""
 
     steps_per_task: int = 300_000  # agent steps per task, learner and reviewer together (the code's count)
@@ -149,7 +170,7 @@ class TrainConfig:
 
 
 @dataclass
-class MethodConfig:
+class MethodConfig(_Section):
     """The continual-learning method and the settings of every method (each reads only its own)."""
 
     name: str = "continual"  # the method (`drago list` shows them)
@@ -186,7 +207,7 @@ class MethodConfig:
 
 
 @dataclass
-class TransferConfig:
+class TransferConfig(_Section):
     """A test task learned from another run's world model (paper §4.4); see `drago transfer`.
 
     Unset (the default) in a continual run. `drago transfer` writes these settings into the transfer
@@ -226,6 +247,11 @@ class Config:
     method: MethodConfig = field(default_factory=MethodConfig)
     transfer: TransferConfig = field(default_factory=TransferConfig)
 
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name not in ("preset", *SECTIONS):
+            raise ConfigError(f"unknown config section '{name}'; valid sections: preset, {', '.join(SECTIONS)}")
+        object.__setattr__(self, name, value)
+
     def to_dict(self) -> dict[str, Any]:
         return _to_plain(dataclasses.asdict(self))
 
@@ -243,6 +269,8 @@ class Config:
 
 
 SECTIONS = ("env", "agent", "train", "method", "transfer")
+for _name, _cls in zip(SECTIONS, (EnvConfig, AgentConfig, TrainConfig, MethodConfig, TransferConfig)):
+    _cls.section = _name  # class attributes, not fields: type.__setattr__ is not the instances' guard
 ELITE_SELECTIONS = ("sample", "argmax")
 PRECISIONS = ("auto", "float32", "bfloat16")
 COMPILE_CHOICES = ("auto", "true", "false")
@@ -345,6 +373,9 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
     Raises:
         ConfigError: one line naming the bad preset, key or value.
     """
+    if isinstance(overrides, str):
+        raise ConfigError(f"overrides must be a list of 'key=value' strings, e.g. overrides=[{overrides!r}], "
+                          f"not the string {overrides!r}")
     cfg = Config(preset=Path(preset).stem if _is_preset_file(preset) else preset)
     for data, where in _preset_layers(preset):
         _merge(cfg, data, where)
@@ -606,12 +637,39 @@ def _check_relations(cfg: Config) -> None:
         raise ConfigError(f"unknown device '{device}'; use cpu, cuda or cuda:N")
 
 
+def _check_types(cfg: Config) -> None:
+    """Every value of the declared type: a config built in Python (``cfg.train.steps_per_task = "abc"``) is held
+    to what a preset or an override would have been converted to."""
+    if not isinstance(cfg, Config):
+        raise ConfigError(f"expected a drago Config (drago.load_config(...)), got {type(cfg).__name__}")
+    for section in SECTIONS:
+        target = getattr(cfg, section)
+        for f in fields(target):
+            value, key = getattr(target, f.name), f"{section}.{f.name}"
+            if isinstance(value, str) and _resolve_type(f.type) is not str and not (
+                    typing.get_origin(_resolve_type(f.type)) in (typing.Union, types.UnionType)
+                    and str in typing.get_args(_resolve_type(f.type))):
+                raise ConfigError(f"setting '{key}' expects {_type_words(f.type)}, got the string {value!r}; "
+                                  "set it to a value of that type")
+            # Normalised in place (a list where a tuple is declared, 100.0 for an integer): the same setting, and
+            # the form a run's config.yaml and a record's protocol hold.
+            object.__setattr__(target, f.name, _coerce(value, f.type, key))
+
+
+def _type_words(annotation: Any) -> str:
+    kind = _resolve_type(annotation)
+    args = [a for a in typing.get_args(kind) if a is not type(None)] or [kind]
+    words = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+    return " or ".join(words.get(a, "a list" if typing.get_origin(a) is tuple else str(a)) for a in args)
+
+
 def validate(cfg: Config) -> None:
-    """Check ranges and names once, so nothing fails an hour into a run.
+    """Check types, ranges and names once, so nothing fails an hour into a run.
 
     The method's name is checked where methods are known (:func:`drago.continual.check_method`): settings
     sit below the methods that read them.
     """
+    _check_types(cfg)
     _check_domain_and_tasks(cfg)
     _check_ranges(cfg)
     _check_relations(cfg)

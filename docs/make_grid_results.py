@@ -1,6 +1,6 @@
 """Regenerate the grid study's section of the results page from the committed records.
 
-    .venv/bin/python docs/make_grid_results.py [--records results/grid]
+    .venv/bin/python docs/make_grid_results.py [--records results/grid] [--preset minigrid-cpu]
 
 Reads every record in the folder (``drago study --records results/grid``), writes the per-unit numbers the
 section shows into ``docs/data/grid_records_*.csv``, builds the report of the records into
@@ -50,10 +50,13 @@ def _ci(values: list[float]) -> tuple[float, float]:
     return s.ci_low, s.ci_high
 
 
-def load(folder: Path) -> list[dict]:
+def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
     units = []
     for path in find_records(folder):
         record = read_record(path)
+        if record["unit"]["preset"] != preset:
+            print(f"left out {path}: preset {record['unit']['preset']}, not the grid study's {preset}")
+            continue
         files = record["files"]
         summary = json.loads(files["summary.json"])
         coverage = _csv(files.get("coverage.csv", ""))
@@ -203,17 +206,30 @@ def section(units: list[dict], folder: Path) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=Path, default=Path("results/grid"))
+    parser.add_argument("--preset", default="minigrid-cpu", help="the study's preset; records of others are left out")
     args = parser.parse_args()
     os.chdir(ROOT)  # records are named by their path from the repository's root, on every machine
     folder = args.records
-    units = load(folder)
+    units = load(folder, args.preset)
     for path in write_data(units):
         print(f"wrote {path.relative_to(ROOT)}")
     if units:
+        import shutil
+        import tempfile
+
         from drago.report import build_report
 
-        for path in build_report([folder], DOCS / "grid-report"):
-            print(f"wrote {path.relative_to(ROOT)}")
+        # report.md and its figures only: the site renders the Markdown page, and a report.html beside it would
+        # be a second page of the same name.
+        target = DOCS / "grid-report"
+        shutil.rmtree(target, ignore_errors=True)
+        target.mkdir()
+        with tempfile.TemporaryDirectory() as scratch:
+            build_report([folder], scratch)
+            for path in sorted(Path(scratch).iterdir()):
+                if path.suffix in (".md", ".png"):
+                    shutil.copy(path, target / path.name)
+                    print(f"wrote {(target / path.name).relative_to(ROOT)}")
     page = DOCS / "results.md"
     text = page.read_text()
     if START not in text or END not in text:

@@ -1,7 +1,7 @@
 """The public API: what ``import drago`` offers, and all that the command line uses.
 
 ``import drago`` itself stays fast: the package reaches these names on first use (PEP 562), so torch and
-the trainer are loaded only when something needs them. Example (docs: Extending drago)::
+the trainer are loaded only when something needs them (docs: Extending drago). For example::
 
     import drago
 
@@ -64,7 +64,7 @@ __all__ = [
     "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
     "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
     "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
-    "reviewer_pay_of_run", "RecordError", "read_record", "record_run", "components_checkpoints",
+    "reviewer_pay_of_run", "plugin_packages", "RecordError", "read_record", "record_run", "components_checkpoints",
     "components_of_run", "costs_of_run", "evaluate_components",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "Record", "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
@@ -94,8 +94,27 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
 
 
 def plugin_problems() -> list[PluginProblem]:
-    """Every plug-in (method or domain) that failed to load and was skipped; ``str(problem)`` is one line."""
-    return [*_method_plugin_problems(), *_domain_plugin_problems()]
+    """Every plug-in (method, domain or preset) that failed to load and was skipped; ``str(problem)`` is one
+    line."""
+    from drago.config import preset_plugin_problems
+
+    return [*_method_plugin_problems(), *_domain_plugin_problems(), *preset_plugin_problems()]
+
+
+def plugin_packages() -> dict[str, dict[str, str]]:
+    """The package each plug-in came from: ``{"presets" | "methods" | "domains": {name: package}}``."""
+    from drago.config import plugin_presets
+    from drago.continual.registry import METHOD_PACKAGES, methods as _methods
+    from drago.envs.registry import source_of
+
+    _methods()  # loads the method plug-ins
+    domains = {}
+    for name in available_domains():
+        source = source_of(name) or ""
+        if source.startswith("entry point") and "of package '" in source:
+            domains[name] = source.rsplit("of package '", 1)[1].rstrip("'")
+    return {"presets": {name: package for name, (_, package) in plugin_presets().items()},
+            "methods": dict(METHOD_PACKAGES), "domains": domains}
 
 
 def train(cfg: Config, out: str | Path | None = None, force: bool = False, progress: bool = True) -> Run:

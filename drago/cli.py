@@ -159,17 +159,21 @@ def _cmd_resume(args: argparse.Namespace) -> int:
 
 def _cmd_list(args: argparse.Namespace) -> int:
     from drago.api import (available_domains, available_presets, describe_settings,
-                           get_domain, methods, plugin_problems, task_descriptions)
+                           get_domain, methods, plugin_packages, plugin_problems, task_descriptions)
 
-    print("presets:  " + ", ".join(available_presets()) + " (or a path to a YAML file)")
+    packages = plugin_packages()
+    print("presets:  " + ", ".join(f"{name} (package {packages['presets'][name]})" if name in packages["presets"]
+                                   else name for name in available_presets()) + " (or a path to a YAML file)")
     print("methods:")
     for name, cls in methods().items():
-        print(f"  {name:<20} {cls.description}")
+        origin = f" (package {packages['methods'][name]})" if name in packages["methods"] else ""
+        print(f"  {name:<20} {cls.description}{origin}")
     domains = {name: get_domain(name) for name in available_domains()}
     tasks = {name: task_descriptions(name) for name in domains}
     width = max(len(name) for rows in tasks.values() for name, _ in rows)
     for name, rows in tasks.items():
-        print(f"tasks ({name}, env.domain={name}):")
+        origin = f", package {packages['domains'][name]}" if name in packages["domains"] else ""
+        print(f"tasks ({name}, env.domain={name}{origin}):")
         for task, description in rows:
             print(f"  {task:<{width}}  {description}")
     print("  (every stock DeepMind Control task too: env.domain=dmc:DOMAIN, e.g. dmc:hopper with hopper-stand)")

@@ -279,10 +279,57 @@ AGENT_KINDS = ("tdmpc", "pets")
 INTRINSIC_REWARDS = ("code", "paper")  # the reviewer's reward: the official code's form or the paper's (§3.2)
 
 
-def available_presets() -> list[str]:
-    """Names of the YAML presets shipped with the package."""
+PRESET_ENTRY_POINT_GROUP = "drago.presets"
+
+
+def _builtin_presets() -> list[str]:
     root = resources.files("drago") / "presets"
     return sorted(p.name[: -len(".yaml")] for p in root.iterdir() if p.name.endswith(".yaml"))
+
+
+_plugin_presets: dict[str, tuple[Any, str]] | None = None  # name -> (the YAML file, its package)
+_preset_problems: list = []
+
+
+def plugin_presets() -> dict[str, tuple[Any, str]]:
+    """Presets that installed packages ship under the entry-point group ``drago.presets``: by name, the YAML
+    file and the package. An entry point loads a path to a YAML file (a ``str``, a ``pathlib.Path`` or an
+    ``importlib.resources`` file, or a function returning one); one that fails, or takes a built-in preset's
+    name, is skipped with one warning line (docs: Extending drago, "Ship a preset")."""
+    global _plugin_presets
+    if _plugin_presets is None:
+        from drago.plugins import load_entry_points, package_of
+
+        found: dict[str, tuple[Any, str]] = {}
+        builtin = set(_builtin_presets())
+
+        def register(entry: Any) -> None:
+            target = entry.load()
+            target = target() if callable(target) and not hasattr(target, "read_text") else target
+            target = Path(target) if isinstance(target, (str, os.PathLike)) else target
+            if not hasattr(target, "read_text"):
+                raise ConfigError(f"it loads a {type(target).__name__}, not the path of a YAML file")
+            if entry.name in builtin or entry.name in found:
+                raise ConfigError(f"'{entry.name}' is already a preset's name; give the entry point another name")
+            if not target.is_file():
+                raise ConfigError(f"its file {target} does not exist")
+            found[entry.name] = (target, package_of(entry))
+
+        _preset_problems.extend(load_entry_points(PRESET_ENTRY_POINT_GROUP, "preset", register,
+                                                  plain_errors=(ConfigError,)))
+        _plugin_presets = found
+    return dict(_plugin_presets)
+
+
+def preset_plugin_problems() -> list:
+    """The preset plug-ins that were skipped (each one line as ``str(problem)``)."""
+    plugin_presets()
+    return list(_preset_problems)
+
+
+def available_presets() -> list[str]:
+    """Names of the presets: those shipped with drago, then those of installed plug-in packages."""
+    return [*_builtin_presets(), *sorted(plugin_presets())]
 
 
 PRESET_SUFFIXES = (".yaml", ".yml")
@@ -342,10 +389,16 @@ def _preset_layers(ref: str, chain: tuple[str, ...] = ()) -> list[tuple[dict[str
         if ref not in presets:
             raise ConfigError(f"unknown preset '{ref}'; valid presets: {', '.join(presets)} "
                               "(or a path to a YAML file)")
-        data = yaml.safe_load((resources.files("drago") / "presets" / f"{ref}.yaml").read_text()) or {}
+        plugin = plugin_presets().get(ref)
+        source = plugin[0] if plugin else resources.files("drago") / "presets" / f"{ref}.yaml"
+        try:
+            data = yaml.safe_load(source.read_text(encoding="utf-8")) or {}
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+            raise ConfigError(f"preset {ref} ({source}) is not readable: {' '.join(str(err).split())}") from None
+        package = f" of package {plugin[1]}" if plugin else ""
 
-        def where(section: str | None, key: str | None, ref: str = ref) -> str:
-            return f"preset {ref}: "
+        def where(section: str | None, key: str | None, ref: str = ref, package: str = package) -> str:
+            return f"preset {ref}{package}: "
     data = data or {}
     if not isinstance(data, dict):
         raise ConfigError(f"{where(None, None)}a preset must be a mapping of sections (env, agent, train, ...)")

@@ -190,3 +190,32 @@ def test_run_of_a_folder_that_is_not_a_run_says_so(tmp_path):
     with pytest.raises(api.RunDirError, match="is not a drago run directory"):
         api.Run(tmp_path)
 
+
+
+def test_preset_plugins_load_by_name_and_bad_ones_are_skipped_with_one_line(tmp_path, monkeypatch, capsys):
+    import drago.config as config
+
+    (tmp_path / "quick.yaml").write_text("base: smoke\ntrain:\n  steps_per_task: 300\n")
+    fake_distribution(tmp_path, "drago-presets", f"""
+        [drago.presets]
+        quick = preset_plugin:QUICK
+        smoke = preset_plugin:QUICK
+        missing = preset_plugin:MISSING
+        """, {"preset_plugin": f"""
+        from pathlib import Path
+        QUICK = Path({str(tmp_path / 'quick.yaml')!r})
+        MISSING = Path({str(tmp_path / 'nope.yaml')!r})
+        """})
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(config, "_plugin_presets", None)
+    monkeypatch.setattr(config, "_preset_problems", [])
+    importlib.invalidate_caches()
+    assert api.load_config("quick").train.steps_per_task == 300
+    assert "quick" in api.available_presets() and api.load_config("smoke").train.steps_per_task != 300
+    warnings = capsys.readouterr().err.strip().splitlines()
+    assert len(warnings) == 2
+    assert "preset plug-in 'smoke = preset_plugin:QUICK' of package 'drago-presets' skipped: 'smoke' is already a " \
+           "preset's name; give the entry point another name" in warnings[0]
+    assert "'missing = preset_plugin:MISSING'" in warnings[1] and "does not exist" in warnings[1]
+    assert len([p for p in api.plugin_problems() if p.kind == "preset"]) == 2
+    sys.modules.pop("preset_plugin", None)

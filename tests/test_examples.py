@@ -41,11 +41,21 @@ def drago(venv: Path, *args: str, timeout: float = 300) -> subprocess.CompletedP
                           timeout=timeout, env=env)
 
 
-def test_drago_lists_the_plugins_method_and_domain(venv):
+def test_drago_lists_the_plugins_method_domain_and_preset_with_their_package(venv):
     listing = drago(venv, "list")
     assert listing.returncode == 0, listing.stderr
     assert "l2-anchor" in listing.stdout and "two-pendulums" in listing.stdout
+    assert "pendulums-quick (package drago-example)" in listing.stdout
+    assert "(package drago-example)" in next(line for line in listing.stdout.splitlines() if "l2-anchor" in line)
     assert "warning" not in listing.stderr
+
+
+def test_the_plugins_preset_trains_by_name(venv, tmp_path):
+    run = tmp_path / "quick"
+    trained = drago(venv, "train", "pendulums-quick", "--method", "l2-anchor", "--out", str(run), *QUIET)
+    assert trained.returncode == 0, trained.stdout + trained.stderr
+    assert (run / "checkpoints" / "task2_spin.pt").is_file()
+    assert "preset: pendulums-quick" in (run / "config.yaml").read_text()
 
 
 def test_the_plugins_method_trains_resumes_after_a_kill_and_reports(venv, tmp_path):

@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 
 from drago.config import ConfigError
 from drago.continual.base import ContinualMethod
-from drago.plugins import PluginProblem, load_entry_points
+from drago.plugins import PluginProblem, load_entry_points, package_of
 
 ENTRY_POINT_GROUP = "drago.methods"
 NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
@@ -23,6 +23,8 @@ M = TypeVar("M", bound=type[ContinualMethod])
 
 #: The live registry, name -> class; add to it with :func:`register_method` (tests may patch it).
 METHODS: dict[str, type[ContinualMethod]] = {}
+#: The package each plug-in method came from, by name (built-in and register_method ones are absent).
+METHOD_PACKAGES: dict[str, str] = {}
 _problems: list[PluginProblem] = []
 _plugins_loaded = False
 
@@ -77,11 +79,15 @@ def load_plugins(entries: Callable[..., Any] | None = None) -> None:
     _plugins_loaded = True
 
     def register(entry: Any) -> None:
+        if entry.name in METHODS:  # an entry point cannot pass replace=True: its name must change
+            raise RegistryError(f"method '{entry.name}' is already registered by {_where(METHODS[entry.name])}; "
+                                "give the entry point another name")
         loaded = entry.load()
         if isinstance(loaded, type):
             register_method(entry.name, loaded)
         elif entry.name not in METHODS:
             raise RegistryError(f"it loaded {entry.value} but registered no method named '{entry.name}'")
+        METHOD_PACKAGES[entry.name] = package_of(entry)
 
     _problems.extend(load_entry_points(ENTRY_POINT_GROUP, "method", register, plain_errors=(ConfigError,),
                                        entries=entries))

@@ -124,8 +124,9 @@ def register_domain(domain: Domain, replace: bool = False) -> Domain:
                           f"letter or digit{reserved}")
     with _registry.lock:
         if name in _registry.domains and not replace:
-            raise DomainError(f"domain '{name}' is already registered ({_registry.sources[name]}); choose another "
-                              "name or pass replace=True")
+            how = ("give the entry point another name" if _registry.loading_source  # it cannot pass replace=True
+                   else "choose another name or pass replace=True")
+            raise DomainError(f"domain '{name}' is already registered ({_registry.sources[name]}); {how}")
         _registry.domains[name] = domain
         _registry.sources[name] = _registry.loading_source or "register_domain"
     return domain

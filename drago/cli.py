@@ -188,7 +188,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
             print(f"  {problem}")
     if args.settings:
         print("settings (key, type, default):")
-        for key, kind, default in describe_settings():
+        for key, kind, default in describe_settings(plugins=True):
             print(f"  {key:<34} {kind:<18} {default}")
     return 0
 

@@ -45,12 +45,35 @@ class _Section:
         object.__setattr__(self, name, value)
 
 
-def _unknown(key: str, valid: list[str]) -> str:
+def _unknown(key: str, valid: list[str], more: str = "") -> str:
     import difflib
 
     close = difflib.get_close_matches(key, valid, n=1)
     hint = f"did you mean {close[0]}? " if close else ""
-    return f"unknown setting '{key}'; {hint}run `drago list --settings` for the valid keys"
+    return f"unknown setting '{key}'; {hint}{more}run `drago list --settings` for the valid keys"
+
+
+@dataclass(frozen=True)
+class MethodSetting:
+    """A setting a plug-in method declares (``ContinualMethod.settings``; docs: Extending drago, "Settings of
+    your own"): set as ``method.NAME=value`` like a built-in one, kept in ``cfg.method.options``.
+
+    Attributes:
+        kind: ``int``, ``float``, ``bool`` or ``str``.
+        default: its value when nothing sets it.
+        description: one line, shown by ``drago list --settings``.
+    """
+
+    kind: type
+    default: Any
+    description: str
+
+
+#: The settings each method with settings of its own declares, by method name (filled as methods register).
+METHOD_SETTINGS: dict[str, dict[str, MethodSetting]] = {}
+#: Called before a method's own settings are looked up, so that plug-in methods have registered (the
+#: continual layer installs it: settings sit below the methods that read them).
+load_method_plugins: Callable[[], None] = lambda: None
 
 
 @dataclass
@@ -204,6 +227,8 @@ class MethodConfig(_Section):
     replay_fraction: float = 0.5  # share of world-model rows drawn from the old-task buffer
     # -- curiosity --
     curiosity_coef: float = 1.0  # prediction-error bonus added to the learner's TD target
+    # The settings a plug-in method declares, by name (method.NAME=value sets one; docs: Extending drago)
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -430,19 +455,41 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
         raise ConfigError(f"overrides must be a list of 'key=value' strings, e.g. overrides=[{overrides!r}], "
                           f"not the string {overrides!r}")
     cfg = Config(preset=Path(preset).stem if _is_preset_file(preset) else preset)
+    # A method.* key that is no built-in setting may be one the chosen method declares: kept until the method
+    # is known (an override or --method can still change it), then resolved against its declaration.
+    pending: list[tuple[str, Any, str, bool]] = []
     for data, where in _preset_layers(preset):
-        _merge(cfg, data, where)
+        _merge(cfg, data, where, pending)
     for item in overrides or []:
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise ConfigError(f"override '{item}' is not of the form key=value")
-        apply_override(cfg, key.strip(), raw.strip())
+        apply_override(cfg, key.strip(), raw.strip(), pending)
     if method is not None:
         cfg.method.name = method
     if seed is not None:
         cfg.train.seed = seed
+    _resolve_method_options(cfg, pending)
     validate(cfg)
     return cfg
+
+
+def _resolve_method_options(cfg: Config, pending: list[tuple[str, Any, str, bool]]) -> None:
+    """Set each pending ``method.NAME`` the chosen method declares into ``cfg.method.options``."""
+    if not pending:
+        return
+    load_method_plugins()
+    declared = METHOD_SETTINGS.get(cfg.method.name, {})
+    for name, value, prefix, from_text in pending:
+        key = f"method.{name}"
+        if name not in declared:
+            candidates = [f"method.{n}" for n in declared] + [f"method.{f.name}" for f in fields(MethodConfig)
+                                                              if f.name != "options"]
+            own = (f"method '{cfg.method.name}' declares {', '.join(f'method.{n}' for n in declared)}; "
+                   if declared else "")
+            raise ConfigError(f"{prefix}{_unknown(key, candidates, own)}")
+        kind = declared[name].kind
+        cfg.method.options[name] = _parse(value, kind, key) if from_text else _coerce(value, kind, key)
 
 
 def _all_keys(cfg: Config) -> dict[str, list[str]]:
@@ -454,8 +501,9 @@ def _all_keys(cfg: Config) -> dict[str, list[str]]:
     return index
 
 
-def apply_override(cfg: Config, key: str, raw: str) -> None:
-    """Set one setting from its string form, converting to the field's declared type."""
+def apply_override(cfg: Config, key: str, raw: str, pending: list | None = None) -> None:
+    """Set one setting from its string form, converting to the field's declared type. With ``pending``, an
+    unknown ``method.NAME`` is kept there for the chosen method's own settings (:func:`load_config`)."""
     if "." in key:
         section, _, name = key.partition(".")
         if section not in SECTIONS:
@@ -470,6 +518,9 @@ def apply_override(cfg: Config, key: str, raw: str) -> None:
         section, name = owners[0], key
     target = getattr(cfg, section)
     declared = {f.name: f for f in fields(target)}
+    if name not in declared and section == "method" and pending is not None:
+        pending.append((name, raw, "", True))
+        return
     if name not in declared:
         raise ConfigError(f"unknown setting '{section}.{name}'; valid keys in {section}: "
                           + ", ".join(declared))
@@ -477,8 +528,9 @@ def apply_override(cfg: Config, key: str, raw: str) -> None:
     setattr(target, name, value)
 
 
-def _merge(cfg: Config, data: dict[str, Any], where: Where | str) -> None:
-    """Set every ``section: {key: value}`` of ``data``; errors start with ``where(section, key)``."""
+def _merge(cfg: Config, data: dict[str, Any], where: Where | str, pending: list | None = None) -> None:
+    """Set every ``section: {key: value}`` of ``data``; errors start with ``where(section, key)``. With
+    ``pending``, an unknown method setting is kept there (:func:`load_config`)."""
     prefix = where if callable(where) else (lambda section, key, text=where: text)
     for section, values in data.items():
         if section == "preset":
@@ -491,6 +543,9 @@ def _merge(cfg: Config, data: dict[str, Any], where: Where | str) -> None:
         target = getattr(cfg, section)
         declared = {f.name: f for f in fields(target)}
         for name, value in values.items():
+            if name not in declared and section == "method" and pending is not None:
+                pending.append((name, value, prefix(section, name), False))
+                continue
             if name not in declared:
                 raise ConfigError(f"{prefix(section, name)}unknown setting '{section}.{name}'; valid keys in "
                                   f"{section}: " + ", ".join(declared))
@@ -520,6 +575,12 @@ def _parse_scalar(raw: str) -> Any:
 
 # YAML 1.1 reads an exponent without a dot ("3e-4", "1E5") as a string; that is how people write rates.
 _EXPONENT_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
+def setting_value(value: Any, kind: Any, key: str) -> Any:
+    """``value`` as a setting of type ``kind`` (a preset's YAML value, or one set in Python), named ``key`` in
+    the one-line :class:`ConfigError` it raises when it is not one."""
+    return _coerce(value, kind, key)
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
@@ -736,12 +797,18 @@ def _to_plain(value: Any) -> Any:
     return value
 
 
-def describe_settings() -> list[tuple[str, str, Any]]:
-    """(key, type, default) for every setting, for `drago list --settings`."""
+def describe_settings(plugins: bool = False) -> list[tuple[str, str, Any]]:
+    """(key, type, default) for every setting, for `drago list --settings`; with ``plugins``, also the
+    settings plug-in methods declare (type ``KIND, METHOD only``)."""
     cfg = Config()
     rows = []
     for section in SECTIONS:
         for f in fields(getattr(cfg, section)):
             type_name = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
             rows.append((f"{section}.{f.name}", str(type_name), getattr(getattr(cfg, section), f.name)))
+    if plugins:
+        load_method_plugins()
+        for method, declared in METHOD_SETTINGS.items():
+            rows += [(f"method.{name}", f"{setting.kind.__name__}, {method} only", setting.default)
+                     for name, setting in declared.items()]
     return rows

@@ -55,3 +55,44 @@ def test_values_of_the_right_kind_are_normalised(tmp_path):
     run = drago.train(cfg, out=tmp_path / "run", progress=False)
     assert run.config.train.steps_per_task == 200 and isinstance(run.config.train.steps_per_task, int)
     assert run.config.env.tasks == ("room1",)
+
+
+def test_a_methods_own_settings_are_set_checked_and_listed(tmp_path):
+    from drago.config import MethodSetting
+    from drago.continual import Continual
+    from drago.config import METHOD_SETTINGS
+    from drago.continual.registry import METHODS, RegistryError
+
+    class Pull(Continual):
+        description = "continual TD-MPC that reads a setting of its own"
+        settings = {"pull": MethodSetting(float, 0.5, "how hard it pulls")}
+
+        def begin_task(self, task):
+            seen.append(self.setting("pull"))
+
+    seen: list[float] = []
+    drago.register_method("pull-test", Pull)
+    try:
+        cfg = drago.load_config("smoke", ["method.pull=2", "train.tensorboard=false", "env.tasks=[room1]",
+                                          "train.steps_per_task=200"], method="pull-test")
+        assert cfg.method.options == {"pull": 2.0}
+        drago.train(cfg, out=tmp_path / "run", progress=False)
+        assert seen == [2.0]
+        assert ("method.pull", "float, pull-test only", 0.5) in drago.describe_settings(plugins=True)
+        with pytest.raises(ConfigError, match=r"did you mean method.pull\? method 'pull-test' declares method.pull"):
+            drago.load_config("smoke", ["method.pul=2"], method="pull-test")
+        with pytest.raises(ConfigError, match="unknown setting 'method.pull'"):
+            drago.load_config("smoke", ["method.pull=2"], method="continual")  # not continual's setting
+        cfg.method.options["pull"] = "hard"
+        with pytest.raises(ConfigError, match="setting 'method.pull' expects a number"):
+            drago.train(cfg, out=tmp_path / "bad", progress=False)
+        assert not (tmp_path / "bad").exists()
+
+        class Clash(Continual):
+            settings = {"ewc_coef": MethodSetting(float, 1.0, "a built-in's name")}
+
+        with pytest.raises(RegistryError, match="taken by a built-in setting"):
+            drago.register_method("clash-test", Clash)
+    finally:
+        METHODS.pop("pull-test", None)
+        METHOD_SETTINGS.pop("pull-test", None)

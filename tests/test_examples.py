@@ -50,12 +50,21 @@ def test_drago_lists_the_plugins_method_domain_and_preset_with_their_package(ven
     assert "warning" not in listing.stderr
 
 
-def test_the_plugins_preset_trains_by_name(venv, tmp_path):
+def test_the_plugins_preset_trains_by_name_with_the_plugins_own_setting(venv, tmp_path):
     run = tmp_path / "quick"
-    trained = drago(venv, "train", "pendulums-quick", "--method", "l2-anchor", "--out", str(run), *QUIET)
+    trained = drago(venv, "train", "pendulums-quick", "--method", "l2-anchor", "--out", str(run), *QUIET,
+                    "method.anchor_coef=10")
     assert trained.returncode == 0, trained.stdout + trained.stderr
     assert (run / "checkpoints" / "task2_spin.pt").is_file()
-    assert "preset: pendulums-quick" in (run / "config.yaml").read_text()
+    written = (run / "config.yaml").read_text()
+    assert "preset: pendulums-quick" in written and "anchor_coef: 10.0" in written
+    listing = drago(venv, "list", "--settings")
+    line = next(line for line in listing.stdout.splitlines() if "method.anchor_coef" in line)
+    assert "float, l2-anchor only" in line and "100.0" in line
+    typo = drago(venv, "train", "pendulums-quick", "--method", "l2-anchor", "--out", str(tmp_path / "typo"),
+                 "method.anchor_cof=10")
+    assert typo.returncode == 2 and "did you mean method.anchor_coef?" in typo.stderr
+    assert not (tmp_path / "typo").exists()
 
 
 def test_the_plugins_method_trains_resumes_after_a_kill_and_reports(venv, tmp_path):

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
-from drago.config import Config, ConfigError
+import drago.config as _config
+from drago.config import METHOD_SETTINGS, Config, ConfigError, setting_value
 from drago.continual.base import ContinualMethod, TaskState
 from drago.continual.curiosity import Curiosity
 from drago.continual.drago import Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal
 from drago.continual.ewc import EWC
 from drago.continual.naive import Continual, LearnerOnly, Scratch
 from drago.continual.registry import METHODS, get_method, methods, plugin_problems, register_method
+from drago.continual.registry import load_plugins as _load_plugins
 from drago.continual.replay import Replay
 
 for _builtin in (Continual, Scratch, Drago, DragoNoRehearsal, DragoNoReviewer, DragoSingleAgent, PseudoRehearsal,
                  EWC, Replay, Curiosity):
     register_method(_builtin.name, _builtin)
+# A method.NAME override may be a plug-in method's own setting: the config looks after the plug-ins load.
+_config.load_method_plugins = _load_plugins
 
 
 def available_methods() -> list[str]:
@@ -30,6 +34,13 @@ def check_method(cfg: Config) -> Config:
     problem = get_method(cfg.method.name).config_problem(cfg)
     if problem is not None:
         raise ConfigError(f"method '{cfg.method.name}' {problem}")
+    declared = METHOD_SETTINGS.get(cfg.method.name, {})
+    for name, value in cfg.method.options.items():
+        if name not in declared:
+            own = ", ".join(f"method.{n}" for n in declared) or "none"
+            raise ConfigError(f"method '{cfg.method.name}' has no setting '{name}' (its own settings: {own}); "
+                              "remove it from cfg.method.options")
+        cfg.method.options[name] = setting_value(value, declared[name].kind, f"method.{name}")
     return cfg
 
 

@@ -17,7 +17,7 @@ import torch
 from drago.agent.agent import Agent
 from drago.agent.buffer import EpisodeReplay
 from drago.agent.networks import WorldModel
-from drago.config import Config
+from drago.config import Config, MethodSetting
 from drago.envs import EnvSpec
 
 
@@ -117,6 +117,9 @@ class ContinualMethod:
     description = "continual TD-MPC: carry the world model over and fine-tune it on each task"
     #: Build a fresh world model at every task instead of carrying the previous one over.
     fresh_world_model = False
+    #: Settings of the method's own, by name (a plug-in cannot add fields to drago's config): each is set as
+    #: ``method.NAME=value`` and read with :meth:`setting` (docs: Extending drago, "Settings of your own").
+    settings: dict[str, MethodSetting] = {}
 
     def __init__(self, cfg: Config, spec: EnvSpec, device: torch.device):
         self.cfg = cfg
@@ -132,6 +135,10 @@ class ContinualMethod:
         agent kinds.
         """
         return None
+
+    def setting(self, name: str) -> Any:
+        """The value of one of the method's own :attr:`settings`: the config's, else its default."""
+        return self.cfg.method.options.get(name, self.settings[name].default)
 
     # ---- task boundaries -------------------------------------------------------------------
     def begin_task(self, task: TaskState) -> None:

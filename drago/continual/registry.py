@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
+from dataclasses import fields
 from typing import Any, TypeVar
 
-from drago.config import ConfigError
+from drago.config import METHOD_SETTINGS, ConfigError, MethodConfig, MethodSetting, setting_value
 from drago.continual.base import ContinualMethod
 from drago.plugins import PluginProblem, load_entry_points, package_of
 
@@ -57,10 +58,31 @@ def register_method(name: str, cls: M | None = None, *, replace: bool = False) -
         if held is not None and held is not method and not replace:
             raise RegistryError(f"method '{name}' is already registered by {_where(held)}; choose another name "
                                 "or pass replace=True")
+        _check_settings(name, method)
         METHODS[name] = method
+        if method.settings:
+            METHOD_SETTINGS[name] = dict(method.settings)
+        else:
+            METHOD_SETTINGS.pop(name, None)
         return method
 
     return add if cls is None else add(cls)
+
+
+def _check_settings(name: str, method: type[ContinualMethod]) -> None:
+    """A method's own settings: MethodSetting values of a plain type, under names no built-in setting has."""
+    builtin = {f.name for f in fields(MethodConfig)}
+    for key, setting in method.settings.items():
+        if not isinstance(setting, MethodSetting) or setting.kind not in (int, float, bool, str):
+            raise RegistryError(f"method '{name}': its setting '{key}' must be a drago.MethodSetting of kind int, "
+                                "float, bool or str")
+        if key in builtin or not NAME.fullmatch(key.replace("-", "_")) or "-" in key:
+            raise RegistryError(f"method '{name}': its setting name '{key}' is taken by a built-in setting or is not "
+                                "a lowercase identifier; rename it")
+        try:
+            setting_value(setting.default, setting.kind, f"method.{key}")
+        except ConfigError as err:
+            raise RegistryError(f"method '{name}': the default of {err}") from None
 
 
 def _where(cls: type) -> str:

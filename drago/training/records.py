@@ -64,6 +64,9 @@ PATH_SETTINGS = ("transfer.checkpoint", "transfer.pre_rollout_checkpoint")
 #: Left out of a protocol: where and how a run logs, and what it resolved for its machine (``auto`` precision
 #: and compilation, which the record's provenance keeps), so that a study continues on another machine.
 NOT_PROTOCOL = (*SETTINGS_THAT_MAY_DIFFER, *PATH_SETTINGS, *RESOLVED_AT_START, "train.tensorboard")
+#: Settings left out of a protocol while they hold this value: a plug-in method's own settings (none for the
+#: built-in methods).
+NEUTRAL: dict[str, Any] = {"method.options": {}}
 
 
 class RecordError(RunDirError):
@@ -72,7 +75,10 @@ class RecordError(RunDirError):
 
 # ---- protocol --------------------------------------------------------------------------------------
 def _protocol_settings(cfg: Config) -> dict[str, Any]:
-    return {key: value for key, value in flat_settings(cfg).items() if key not in NOT_PROTOCOL}
+    settings = {key: value for key, value in flat_settings(cfg).items() if key not in NOT_PROTOCOL}
+    # Settings that were added after records existed and whose default changes nothing are left out at that
+    # default, so the records made before them keep their protocol.
+    return {key: value for key, value in settings.items() if NEUTRAL.get(key, object()) != value}
 
 
 def run_protocol(run: Config, transfers: Mapping[str, Config], evaluations: Sequence[str]) -> dict[str, Any]:

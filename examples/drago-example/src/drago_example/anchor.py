@@ -1,7 +1,8 @@
 """L2 anchor: continual TD-MPC with an L2 pull towards the previous task's world model.
 
 A simpler relative of EWC: every weight is anchored with the same strength instead of its Fisher
-information. Its strength is drago's ``method.ewc_coef`` setting.
+information. Its strength is a setting of its own, ``method.anchor_coef`` (``drago train ... --method l2-anchor
+method.anchor_coef=10``), declared in ``settings`` and read with ``self.setting``.
 """
 
 from __future__ import annotations
@@ -10,11 +11,13 @@ from typing import Any
 
 import torch
 
+from drago.config import MethodSetting
 from drago.continual import ContinualMethod
 
 
 class L2Anchor(ContinualMethod):
     description = "continual TD-MPC with an L2 pull towards the previous task's world model (example plug-in)"
+    settings = {"anchor_coef": MethodSetting(float, 100.0, "weight of the L2 pull towards the previous task's weights")}
 
     def __init__(self, cfg, spec, device):
         super().__init__(cfg, spec, device)
@@ -24,7 +27,7 @@ class L2Anchor(ContinualMethod):
         if self.anchor is None:
             return None
         params = dict(task.world_model.dynamics.named_parameters())
-        anchor, coef = self.anchor, self.cfg.method.ewc_coef
+        anchor, coef = self.anchor, self.setting("anchor_coef")
 
         def penalty() -> torch.Tensor:
             return coef * sum(((params[k] - v) ** 2).sum() for k, v in anchor.items()) / 2

@@ -20,6 +20,7 @@ import drago.study as study  # studies: plan_study, run_study, describe_plan, ..
 import drago.study_slurm as study_slurm  # the SLURM backend of drago study
 from drago.agent.speed import resolve_speed, speed_summary
 from drago.config import Config, ConfigError, MethodSetting, available_presets, describe_settings
+from drago.settings_docs import describe_all as describe_settings_fully
 from drago.config import load_config as _load_settings
 from drago.continual import ContinualMethod, TaskState, available_methods, check_method, methods
 from drago.continual import plugin_problems as _method_plugin_problems
@@ -64,7 +65,7 @@ __all__ = [
     "format_coverage_table", "format_retention_table", "retention_checkpoints", "write_coverage_csv",
     "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
     "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
-    "reviewer_pay_of_run", "plugin_packages", "MethodSetting", "RecordError", "read_record", "record_run", "components_checkpoints",
+    "reviewer_pay_of_run", "plugin_packages", "describe_settings_fully", "MethodSetting", "RecordError", "read_record", "record_run", "components_checkpoints",
     "components_of_run", "costs_of_run", "evaluate_components",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "Record", "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",

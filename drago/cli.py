@@ -158,7 +158,7 @@ def _cmd_resume(args: argparse.Namespace) -> int:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from drago.api import (available_domains, available_presets, describe_settings,
+    from drago.api import (available_domains, available_presets, describe_settings_fully,
                            get_domain, methods, plugin_packages, plugin_problems, task_descriptions)
 
     packages = plugin_packages()
@@ -187,9 +187,9 @@ def _cmd_list(args: argparse.Namespace) -> int:
         for problem in problems:
             print(f"  {problem}")
     if args.settings:
-        print("settings (key, type, default):")
-        for key, kind, default in describe_settings(plugins=True):
-            print(f"  {key:<34} {kind:<18} {default}")
+        print("settings (key, type, default: what it does):")
+        for key, kind, default, description in describe_settings_fully():
+            print(f"  {key:<34} {kind:<18} {str(default) + ':':<12} {description}")
     return 0
 
 

@@ -106,7 +106,7 @@ class AgentConfig(_Section):
     # None: a constant lr (paper and code). Otherwise every optimizer of a task decays linearly lr -> lr_final
     # over its first lr_schedule_steps task steps; optimizers start afresh with each task (paper §3.3; docs: Design, how a run flows).
     lr_final: float | None = None
-    lr_schedule_steps: int = 300_000
+    lr_schedule_steps: int = 300_000  # task steps over which lr decays to lr_final (see lr_final)
     rho: float = 0.5  # temporal weight of the t-th loss term
     consistency_coef: float = 2.0  # weight of the latent consistency loss
     reward_coef: float = 0.5  # weight of the reward loss
@@ -130,7 +130,7 @@ class AgentConfig(_Section):
     elite_selection: str = "sample"  # code: sample an elite in proportion to its weight; paper: argmax
     horizon_schedule_steps: int = 10_000  # planning horizon grows linearly 1 -> H over these task steps
     std_schedule_start: float = 0.5  # CEM std floor, linear start -> min_std over std_schedule_steps
-    std_schedule_steps: int = 50_000
+    std_schedule_steps: int = 50_000  # task steps over which the CEM std floor falls to min_std
     seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
     # Seed-phase probabilities of a discrete domain's actions, used when there is one per action (the grid's
     # left, right, forward); other discrete domains, or an empty list, draw uniformly.
@@ -166,7 +166,7 @@ class TrainConfig(_Section):
     # Separate budgets instead, when either is set: a task ends after learner_steps_per_task learner steps
     # (None: steps_per_task) and DRAGO's reviewer collects up to reviewer_steps_per_task (None: as many).
     learner_steps_per_task: int | None = None
-    reviewer_steps_per_task: int | None = None
+    reviewer_steps_per_task: int | None = None  # DRAGO's reviewer's own budget a task (see learner_steps_per_task)
     updates_per_episode: int | None = None  # gradient steps after each iteration; None: episode_length
     eval_freq: int = 10_000  # evaluate every this many env steps of a task (and at its start and end)
     # Evaluate every this many learner episodes instead (eval_freq is then unused); transfer runs use it.
@@ -251,7 +251,7 @@ class TransferConfig(_Section):
     # pre_rollout_steps agent steps of the learner saved in this task checkpoint (its heads and world model,
     # eval-mode planning); those steps are neither stored nor counted. Relative to this run's directory.
     pre_rollout_checkpoint: str | None = None
-    pre_rollout_steps: int = 100
+    pre_rollout_steps: int = 100  # agent steps of each pre-rollout (see pre_rollout_checkpoint)
     # source: plan with the horizon and CEM std floor the source learner had at the end of its task;
     # code: the official code's quirk, the test task's horizon schedule (1 early on) and a std floor of 0.5.
     pre_rollout_planning: str = "source"

@@ -96,3 +96,9 @@ def test_a_methods_own_settings_are_set_checked_and_listed(tmp_path):
     finally:
         METHODS.pop("pull-test", None)
         METHOD_SETTINGS.pop("pull-test", None)
+
+
+def test_every_setting_has_a_description():
+    rows = drago.describe_settings_fully()
+    assert len(rows) == len(drago.describe_settings())
+    assert [key for key, _, _, description in rows if not description.strip()] == []

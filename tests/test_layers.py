@@ -19,6 +19,7 @@ LAYER_OF = {
     "drago.plugins": "core",
     "drago.envs": "envs",
     "drago.config": "config",
+    "drago.settings_docs": "config",
     "drago.agent": "agent",
     "drago.continual": "continual",
     "drago.training": "training",

@@ -4,7 +4,8 @@
 
 * ``<!-- drago:settings -->`` with one table per config section (env, agent, train, method, transfer):
   every setting's key, type and default from ``drago.config.describe_settings()``, and its description
-  from the comments beside and above the dataclass field in the source of drago/config.py;
+  from the comments beside and above the dataclass field (``drago.settings_docs``, which ``drago list
+  --settings`` prints too);
 * ``<!-- drago:presets -->`` with what each preset YAML in drago/presets changes from those defaults.
 
 So the page cannot drift from the code: a new setting, a changed default or comment shows up at the
@@ -13,16 +14,11 @@ next ``mkdocs build``. tests/test_docs.py builds the site and checks every setti
 
 from __future__ import annotations
 
-import ast
-import dataclasses
 import importlib
 import inspect
-import io
 import logging
 import re
 import sys
-import textwrap
-import tokenize
 from pathlib import Path
 from typing import Any
 
@@ -32,75 +28,18 @@ PAGE = "reference/settings.md"
 SETTINGS_MARKER = "<!-- drago:settings -->"
 PRESETS_MARKER = "<!-- drago:presets -->"
 
-# Source comments cite sections of an internal specification that users do not have; the page drops
-# those citations. README section names that moved into this site become links.
-_SPEC_CITATION = re.compile(r"\s*\((?:see )?spec §[^)]*\)|\s*\(§\d[^)]*\)")
-_MOVED = {'README "Speed and precision"': "[Speed and precision](../speed.md)"}
-# A comment block of this form above a field starts a group of settings: "# -- EWC --", "# Planning."
-_GROUP = re.compile(r"^--\s*(.+?)\s*--$")
+
+def _docs_module():
+    # The descriptions' one owner is drago.settings_docs, which `drago list --settings` prints too.
+    return importlib.import_module("drago.settings_docs")
 
 
-@dataclasses.dataclass
-class FieldDoc:
-    name: str
-    description: str
-    group: str | None
+def field_docs(cls: type):
+    return _docs_module().field_docs(cls)
 
 
 def _clean(text: str) -> str:
-    text = _SPEC_CITATION.sub("", text)
-    for old, new in _MOVED.items():
-        text = text.replace(old, new)
-    return re.sub(r"\s+", " ", text).strip()
-
-
-def _comments_by_line(source: str) -> dict[int, tuple[str, bool]]:
-    """Line number -> (comment text, whether the line holds nothing but the comment)."""
-    comments: dict[int, tuple[str, bool]] = {}
-    lines = source.splitlines()
-    for token in tokenize.generate_tokens(io.StringIO(source).readline):
-        if token.type == tokenize.COMMENT:
-            row, col = token.start
-            alone = not lines[row - 1][:col].strip()
-            comments[row] = (token.string.lstrip("#").strip(), alone)
-    return comments
-
-
-def field_docs(cls: type) -> list[FieldDoc]:
-    """Every field of a config dataclass with the comments around it in the source."""
-    source = textwrap.dedent(inspect.getsource(cls))
-    comments = _comments_by_line(source)
-    class_node = ast.parse(source).body[0]
-    docs: list[FieldDoc] = []
-    group: str | None = None
-    for node in class_node.body:
-        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
-            continue
-        # The comment block right above the field (no blank line in between), read upwards.
-        block: list[str] = []
-        row = node.lineno - 1
-        while row >= 1 and row in comments and comments[row][1]:
-            block.insert(0, comments[row][0])
-            row -= 1
-        text = " ".join(block)
-        heading = _GROUP.match(text)
-        if heading:
-            group, text = _clean(heading.group(1)), ""
-        elif text:
-            # A block that opens with a one- or two-word sentence ("Planning.", "Speed (...).") starts a
-            # group; the rest of the block describes the field below it.
-            first, _, rest = text.partition(". ")
-            if len(re.sub(r"\([^)]*\)", "", first).rstrip(".").split()) <= 2:
-                group, text = _clean(first).rstrip("."), rest
-        inline = comments.get(node.end_lineno)
-        parts = []
-        if inline and not inline[1]:
-            # The comment after the field first (often the valid values), then the block above it.
-            parts.append(inline[0] if not text or inline[0].endswith((".", ";", ":")) else inline[0] + ".")
-        if text:
-            parts.append(text)
-        docs.append(FieldDoc(node.target.id, _clean(" ".join(parts)), group))
-    return docs
+    return _docs_module().clean(text)
 
 
 def _config_module():

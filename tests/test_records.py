@@ -202,3 +202,29 @@ def test_a_record_reads_like_its_run_directory_from_python(recorded):
     import gc
     gc.collect()
     assert not folder.exists()
+
+
+def test_the_same_command_in_a_fresh_git_clone_skips_every_unit(recorded, tmp_path):
+    """Done literally: a clone of this repository, the records folder copied into it, the study command run
+    there by the clone's own code in a child process."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    if not (root / ".git").exists():
+        pytest.skip("not a git checkout: nothing to clone")
+    out, records = recorded
+    clone = tmp_path / "clone"
+    done = subprocess.run(["git", "clone", "--quiet", "--no-hardlinks", str(root), str(clone)], capture_output=True,
+                          text=True, timeout=120)
+    if done.returncode != 0:
+        pytest.skip(f"git clone failed here: {done.stderr.strip()[:200]}")
+    shutil.copytree(records, clone / "records")
+    argv = [sys.executable, "-m", "drago", "study", "smoke", "--methods", *METHODS, "--seeds", "1", "--out", "study",
+            "--records", "records", "--transfer-episodes", "1", *TINY]
+    env = {**os.environ, "PYTHONPATH": str(clone)}
+    result = subprocess.run(argv, cwd=clone, env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "2 units recorded (skipped), 0 to record" in result.stdout
+    assert "study complete: 0 jobs run" in result.stdout
+    assert report_bytes(clone / "study") == report_bytes(out)

@@ -1,6 +1,6 @@
 """Behaviour tests of the TD-MPC agent against the closed forms of paper §2; docs: Design, the agent.
 
-Every network is tiny (mlp_dim 16). The expected values are written out from the spec's formulas
+Every network is tiny (mlp_dim 16). The expected values are written out from the paper's formulas (§2, §3)
 with explicit loops, never by calling the code under test a second time.
 """
 

@@ -35,7 +35,7 @@ CHEETAH_TASKS = ["cheetah-run", "cheetah-jump", "cheetah-run-backwards", "cheeta
 WALKER_TASKS = ["walker-stand", "walker-walk", "walker-run", "walker-walk-backwards", "walker-run-backwards"]
 
 
-# ---- the spec's formulas (paper Appendix C), written independently of drago.envs.dmc ----------------------
+# ---- the paper's formulas (Appendix C), written independently of drago.envs.dmc ----------------------
 def tol(x: float, lo: float, hi: float, margin: float, sigmoid: str = "gaussian", v: float = 0.1) -> float:
     if lo <= x <= hi:
         return 1.0

@@ -1,4 +1,4 @@
-"""Behavioural tests of the four-rooms world against the spec's numbers (paper Appendix C)."""
+"""Behavioural tests of the four-rooms world against the paper's numbers (paper Appendix C)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from drago.envs.fourrooms import (
 )
 from drago.envs.tasks import GRID_SEQUENCES, GRID_TASKS, GridTask, get_grid_task
 
-# The spec's ASCII render of the training layout, row labels stripped.
+# The training layout as an ASCII render (paper Appendix C), row labels stripped.
 SPEC_MAP = [
     "###########################",
     "#............#............#",
@@ -235,7 +235,7 @@ def test_turning_on_goal_keeps_paying_in_env() -> None:
             assert info["on_goal"] and not terminated
 
 
-# --- optimal returns (exact DP numbers from the spec) ----------------------
+# --- optimal returns (exact DP numbers of the paper's grid, Appendix C) ----------------------
 
 
 @pytest.mark.parametrize(

@@ -374,7 +374,7 @@ class EpisodeLog:
 
 
 def manual_pre_rollout(env, ckpt: dict, steps: int = PRE_STEPS):
-    """Reset, then the checkpoint's learner in eval mode, written out from the spec: (plain reset, result)."""
+    """Reset, then the checkpoint's learner in eval mode, written out from the paper (§4.4, Table 1): (plain reset, result)."""
     from drago.agent.agent import Agent
     from drago.envs import env_spec
     from drago.agent.networks import build_world_model

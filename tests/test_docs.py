@@ -78,3 +78,13 @@ def test_pages_cite_the_paper_not_an_internal_spec():
     pages = [p for p in (ROOT / "docs").rglob("*.md")] + [ROOT / "README.md"]
     offenders = [str(p.relative_to(ROOT)) for p in pages if re.search(r"spec §|DRAGO_SPEC", p.read_text())]
     assert not offenders, offenders
+
+
+def test_the_api_page_documents_each_name_once_per_object(site):
+    """A name drago.api re-exports is documented under its own module only (Domain appeared twice)."""
+    page = (site / "reference" / "api.html").read_text(encoding="utf-8")
+    anchors = re.findall(r'id="(drago\.(?:api|config|envs)\.[A-Za-z_]+)"', page)
+    names = [a.rsplit(".", 1)[1] for a in anchors]
+    # load_config and plugin_problems are two functions each: drago.api's wraps the module's
+    twice = {n for n in names if names.count(n) > 1} - {"load_config", "plugin_problems"}
+    assert not twice, f"documented twice: {sorted(twice)}"

@@ -116,11 +116,10 @@ def measure_update_shares(steps: int) -> dict[str, float]:
     cls._vae_step = timed("VAE", originals["_vae_step"])
     cls._rehearsal = timed("rehearsal loss (synthetic batch, old model's labels)", originals["_rehearsal"])
     try:
-        cfg = drago.load_config("minigrid-cpu", [f"train.steps_per_task={steps}", f"agent.seed_steps={steps // 5}",
-                                                 "env.tasks=[room1,room2]", "train.threads=1",
-                                                 "train.tensorboard=false", f"train.reviewer_steps_per_task={steps // 2}",
-                                                 f"train.eval_freq={steps}", f"train.checkpoint_freq={steps}"],
-                                method="drago", seed=1)
+        short = [f"train.steps_per_task={steps}", f"agent.seed_steps={steps // 5}", "env.tasks=[room1,room2]",
+                 "train.threads=1", "train.tensorboard=false", f"train.reviewer_steps_per_task={steps // 2}",
+                 f"train.eval_freq={steps}", f"train.checkpoint_freq={steps}"]
+        cfg = drago.load_config("minigrid-cpu", short, method="drago", seed=1)
         with tempfile.TemporaryDirectory() as folder:
             drago.train(cfg, out=Path(folder) / "run", progress=False)
     finally:

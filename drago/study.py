@@ -336,7 +336,8 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
             run = Job(label, "run", method, seed, run_dir, state, argv, logs / f"{method}-seed{seed}.log",
                       source_cfg.train.threads)
             plan.runs.append(run)
-            transfers = [_transfer_job(run, source_cfg, task, after, plan, logs, check_settings) for task, after in kept]
+            transfers = [_transfer_job(run, source_cfg, task, after, plan, logs, check_settings)
+                         for task, after in kept]
             plan.transfers.extend(transfers)
             if plan.records is not None:
                 _plan_record_job(plan, cfg, run, transfers, logs)
@@ -721,7 +722,8 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
 
     Jobs run ``plan.jobs`` at a time as child processes (``python -m drago ARGS``, which is ``drago ARGS``
     dying with this process), their output appended to ``job.log``. Runs start before transfers
-    (with records, a unit's transfers and record before new runs); a transfer starts once its run has finished; if the run fails, its transfers are not started.
+    (with records, a unit's transfers and record before new runs); a transfer starts once its run has
+    finished; if the run fails, its transfers are not started.
     ``in_process``, the command line's ``main``, runs the jobs one after the other in this process
     instead (for tests: a patched function is seen by the runs).
 
@@ -747,8 +749,8 @@ def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
                 for job in [j for j in todo if any(n.status in ("failed", "blocked") for n in _waits_for(j))]:
                     todo.remove(job)
                     job.status = "blocked"
-                    line(job, f"not started: {job.label} ({'its run' if job.kind == 'transfer' else 'a job of its unit'}"
-                              " failed)")
+                    why = "its run" if job.kind == "transfer" else "a job of its unit"
+                    line(job, f"not started: {job.label} ({why} failed)")
                 # Without records, runs before transfers: a run is the longest job and unlocks four, so
                 # starting runs first keeps the cores busy to the end instead of leaving one last run alone.
                 # With records, finishing units comes first (record, then transfers): a study stopped at any
@@ -862,8 +864,9 @@ def records_status(plan: StudyPlan) -> list[str]:
     recorded = sum(run.recorded for run in plan.runs)
     lines = [f"  units:   {recorded} recorded in {plan.records}, {started} in progress here, {todo} to do"]
     if recorded < len(plan.runs):
-        estimate = (f"about {left / 3600:.1f} CPU-hours ({format_duration(left)}) left (mean CPU time of the recorded units of the same "
-                    f"method, else of all {len(every)}; the finished tasks of units in progress counted off)"
+        estimate = (f"about {left / 3600:.1f} CPU-hours ({format_duration(left)}) left (mean CPU time of the "
+                    f"recorded units of the same method, else of all {len(every)}; the finished tasks of units in "
+                    "progress counted off)"
                     if every else "CPU-hours left: unknown until a unit is recorded")
         if every and unknown:
             estimate += f"; not counted: {', '.join(unknown)}"

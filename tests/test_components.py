@@ -43,7 +43,8 @@ class FrozenInPlace(TrueModel):
 
 def fraction(model, heads, task="room1") -> float:
     probe = grid_probe(task, CFG.discount)
-    return float(heads_return(model, heads, probe.task, CFG.horizon, CFG.discount).mean()) / task_optimum("minigrid", task)
+    returns = heads_return(model, heads, probe.task, CFG.horizon, CFG.discount)
+    return float(returns.mean()) / task_optimum("minigrid", task)
 
 
 @pytest.fixture(scope="module")

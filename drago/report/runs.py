@@ -79,7 +79,8 @@ def opened_runs(paths: Iterable[str | Path]) -> Iterator[list[tuple[Path, str]]]
         for path in paths:
             records = find_records(path) if path.exists() else []
             if path.is_file() and not path.name.endswith(RECORD_SUFFIX):
-                raise ReportError(f"{path} is neither a drago run directory (no {CONFIG_FILE}) nor a record (*{RECORD_SUFFIX})")
+                raise ReportError(f"{path} is neither a drago run directory (no {CONFIG_FILE}) nor a record "
+                                  f"(*{RECORD_SUFFIX})")
             if records and not (path / CONFIG_FILE).is_file():
                 for record_path in records:
                     view = materialize(read_record(record_path), Path(scratch) / f"{len(found)}")

@@ -1,6 +1,7 @@
 """Run records: a finished unit of a study as one small, versioned file meant to be committed.
 
-A record holds everything the analysis of a run needs and nothing it does not (docs: Command line, "Records: studies that outlive the machine"):
+A record holds everything the analysis of a run needs and nothing it does not (docs: Command line,
+"Records: studies that outlive the machine"):
 
 * ``protocol``: what decides the run's results (its settings, those of its transfer cases, and the
   evaluations made from its checkpoints) and their digest; not threads, paths, W&B or the commit, so the

@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-from drago.eval.coverage import task_room
 from drago.eval.stats import summarize
 from drago.study import DEFAULT_METHODS, DEFAULT_SEEDS
 from drago.training.records import find_records, read_record

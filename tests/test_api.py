@@ -196,7 +196,7 @@ def test_preset_plugins_load_by_name_and_bad_ones_are_skipped_with_one_line(tmp_
     import drago.config as config
 
     (tmp_path / "quick.yaml").write_text("base: smoke\ntrain:\n  steps_per_task: 300\n")
-    fake_distribution(tmp_path, "drago-presets", f"""
+    fake_distribution(tmp_path, "drago-presets", """
         [drago.presets]
         quick = preset_plugin:QUICK
         smoke = preset_plugin:QUICK

@@ -67,7 +67,6 @@ from drago.config import AgentConfig
 from drago.envs.tasks import GridTask, get_grid_task
 from drago.eval.coverage import GRID_DOMAIN, grid_transitions, task_room, transition_groups
 from drago.eval.zero_shot import (
-    LOST,
     N_ACTIONS,
     N_LATTICE,
     N_STATES,

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -75,3 +77,29 @@ def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: flo
                 proc.kill()
             proc.wait()
     return proc.returncode
+
+
+@contextlib.contextmanager
+def crash_at_gradient_step(method: type, n: int, task: int | str | None = None) -> Iterator[None]:
+    """Make ``method.gradient_step`` raise ``RuntimeError("simulated crash")`` at its ``n``-th call (counting
+    only the calls of one task when ``task`` names it by index or name), as a crash would stop a run there;
+    restored on exit.
+
+    The one crash injection of the suite: a test then resumes the run and compares its logs with those of an
+    uninterrupted one.
+    """
+    original = method.gradient_step
+    calls = {"n": 0}
+
+    def crashing(self, state, u):
+        if task is None or task in (state.index, state.name):
+            calls["n"] += 1
+            if calls["n"] == n:
+                raise RuntimeError("simulated crash")
+        return original(self, state, u)
+
+    method.gradient_step = crashing
+    try:
+        yield
+    finally:
+        method.gradient_step = original

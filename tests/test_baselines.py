@@ -29,7 +29,7 @@ from drago.continual.ewc import EWC, consistency_loss, ewc_penalty, fisher_diago
 from drago.continual.replay import Replay, ReservoirBuffer, replay_loss, replay_weight, stored_transitions
 from drago.envs import env_spec
 from drago.training.checkpoint import load_checkpoint, save_checkpoint
-from helpers import QUIET
+from helpers import QUIET, crash_at_gradient_step
 
 OBS, ACT, H, MLP = 3, 3, 3, 16
 TASKS = ("room1", "room2", "room3", "room4")
@@ -476,20 +476,9 @@ def test_smoke_sequence_carries_the_method_state_and_no_heads(method, runs):
 def test_replay_resumed_mid_task_matches_the_uninterrupted_run(runs, tmp_path, monkeypatch):
     reference = runs("replay")
     crashed = tmp_path / "crashed"
-    original = Replay.gradient_step
-    calls = {"n": 0}
-
-    def crashing(self, task, u):
-        if task.index == 2:
-            calls["n"] += 1
-            if calls["n"] > 15:  # inside episode 4 of task 3, after the periodic checkpoint at step 200
-                raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Replay, "gradient_step", crashing)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            cli.main(["train", "smoke", "--method", "replay", "--out", str(crashed), *QUIET, *EXTRA["replay"]])
+    # inside episode 4 of task 3, after the periodic checkpoint at step 200
+    with crash_at_gradient_step(Replay, 16, task=2), pytest.raises(RuntimeError, match="simulated crash"):
+        cli.main(["train", "smoke", "--method", "replay", "--out", str(crashed), *QUIET, *EXTRA["replay"]])
     assert load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")["task_index"] == 2
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
     for mine, ref in zip(checkpoints(crashed), checkpoints(reference)):

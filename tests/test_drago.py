@@ -21,6 +21,7 @@ from drago.continual.generative import (
 )
 from drago.envs.fourrooms import observation, traversable_cells
 from drago.training.checkpoint import load_checkpoint
+from helpers import crash_at_gradient_step
 
 
 def _world_model(seed: int) -> WorldModel:
@@ -214,22 +215,12 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
     assert cli.main([*args, "--out", str(reference)]) == 0
 
     crashed = tmp_path / "crashed"
-    original = drago_module.Drago.gradient_step
-    calls = {"n": 0}
-
-    def crash_in_task_two(self, task, u):
-        if task.index == 1:
-            calls["n"] += 1
-            if calls["n"] == 15:  # the last iteration of task 2 (updates 11-20), after its checkpoint at step 400
-                raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    monkeypatch.setattr(drago_module.Drago, "gradient_step", crash_in_task_two)
-    with pytest.raises(RuntimeError, match="simulated crash"):
+    # the last iteration of task 2 (updates 11-20), after its checkpoint at step 400
+    with crash_at_gradient_step(drago_module.Drago, 15, task=1), \
+            pytest.raises(RuntimeError, match="simulated crash"):
         cli.main([*args, "--out", str(crashed)])
     snapshot = load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")
     assert snapshot["task_index"] == 1  # resumed inside task 2, with the reviewer and rehearsal state live
-    monkeypatch.setattr(drago_module.Drago, "gradient_step", original)
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv"):
         assert (crashed / name).read_bytes() == (reference / name).read_bytes(), name

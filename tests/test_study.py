@@ -23,6 +23,7 @@ from drago.continual.naive import Continual
 from drago.study import (DONE, RESUME, START, StudyError, describe_plan, parse_cases, parse_seeds, plan_study,
                          run_study)
 from drago.study_slurm import report_argv
+from helpers import crash_at_gradient_step
 
 METHODS = ("continual", "scratch")
 TINY = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100", "train.tensorboard=false",
@@ -176,18 +177,7 @@ def test_crash_then_the_same_command_finishes_with_the_logs_of_an_uninterrupted_
     out = tmp_path / "crashed"
     # The CLI's child processes run in this process here, so that the crash below reaches them.
     monkeypatch.setattr(study, "_launch_process", lambda job: study._launch_in_process(job, cli.main))
-    original = Continual.gradient_step
-    calls = {"n": 0}
-
-    def crash_in_task_3(self, task, u):
-        if task.index == 2:
-            calls["n"] += 1
-            if calls["n"] == 5:  # episode 2 of room 3, after its periodic checkpoint at step 100
-                raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Continual, "gradient_step", crash_in_task_3)
+    with crash_at_gradient_step(Continual, 5, task=2):  # episode 2 of room 3, after its checkpoint at step 100
         assert cli.main(study_argv(out)) == 1
     captured = capsys.readouterr()
     log = out / "logs" / "continual-seed1.log"

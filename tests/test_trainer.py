@@ -26,7 +26,7 @@ from drago.continual import METHODS
 from drago.continual.naive import Continual, Scratch
 from drago.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from drago.training.resources import keep_freed_memory
-from helpers import ONE_THREAD_ENV, QUIET, read_csv, sigkill_in_task_two
+from helpers import ONE_THREAD_ENV, QUIET, crash_at_gradient_step, read_csv, sigkill_in_task_two
 
 TASKS = ("room1", "room2", "room3", "room4")
 DRAGO = Path(sys.executable).parent / "drago"
@@ -259,22 +259,10 @@ def test_world_model_chaining(base, tmp_path, monkeypatch):
 # ---------------------------------------------------------------------------------------------------
 def test_resume_after_crash_replays_the_uninterrupted_run(reference, tmp_path, monkeypatch):
     run = tmp_path / "crashed"
-    original = Continual.gradient_step
-    calls = {"task2": 0}
-
-    def crashing_gradient_step(self, task, u):
-        if task.index == 1:
-            calls["task2"] += 1
-            # Task 2 has 20 gradient steps (episodes 3 and 4); the periodic checkpoint is at step 200,
-            # so the crash comes after episode 3 was logged past that checkpoint.
-            if calls["task2"] > 15:
-                raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Continual, "gradient_step", crashing_gradient_step)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            train(run)
+    # Task 2 has 20 gradient steps (episodes 3 and 4); the periodic checkpoint is at step 200, so the crash
+    # comes after episode 3 was logged past that checkpoint.
+    with crash_at_gradient_step(Continual, 16, task=1), pytest.raises(RuntimeError, match="simulated crash"):
+        train(run)
     ckpt = run / "checkpoints"
     assert (ckpt / "resume.pt").is_file() and (ckpt / "task1_room1.pt").is_file()
     assert not (ckpt / "task2_room2.pt").exists()
@@ -304,17 +292,8 @@ def test_a_resumed_run_keeps_the_tensorboard_points_logged_up_to_its_checkpoint(
 
     run = tmp_path / "run"
     argv = ["train", "smoke", "--out", str(run), "--no-progress", "env.tasks=[room1,room2]"]
-    original = Continual.gradient_step
-
-    def crash_in_task_two(self, task, u):
-        if task.index == 1:
-            raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Continual, "gradient_step", crash_in_task_two)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            cli.main(argv)
+    with crash_at_gradient_step(Continual, 1, task=1), pytest.raises(RuntimeError, match="simulated crash"):
+        cli.main(argv)
     assert cli.main(["resume", str(run), "--no-progress"]) == 0
     events = EventAccumulator(str(run / "tb"))
     events.Reload()

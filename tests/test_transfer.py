@@ -23,7 +23,7 @@ from drago.envs import task_optimum
 from drago.training.checkpoint import load_checkpoint
 from drago.training.rundir import read_run_config
 from drago.training.transfer import PAPER_CASES, reward_variant
-from helpers import QUIET, read_csv
+from helpers import QUIET, crash_at_gradient_step, read_csv
 
 TWO_TASKS = "env.tasks=[room1,room2]"
 
@@ -208,19 +208,8 @@ def test_same_seed_gives_identical_transfer_logs(drago_transfer, sources, tmp_pa
 
 def crash_transfer_at_gradient_step(monkeypatch, n: int, source: Path, *args: str) -> None:
     """Run a transfer that raises at its n-th DRAGO gradient step, as a crash would stop it."""
-    original = Drago.gradient_step
-    calls = {"n": 0}
-
-    def crash_at_step_n(self, task, u):
-        calls["n"] += 1
-        if calls["n"] == n:
-            raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Drago, "gradient_step", crash_at_step_n)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            transfer(source, *args)
+    with crash_at_gradient_step(Drago, n), pytest.raises(RuntimeError, match="simulated crash"):
+        transfer(source, *args)
 
 
 def test_resume_after_a_crash_gives_the_uninterrupted_logs(sources, tmp_path, monkeypatch):
@@ -248,20 +237,8 @@ def test_paper_cases_run_in_turn_skip_finished_ones_and_resume_unfinished_ones(s
     assert [c.name for c in cases] == ["room1to2-after2", "room1to3-after3", "room1to3-after4", "room3to4-after4"]
     args = ["--paper-cases", "--episodes", "2"]
 
-    original = Drago.gradient_step
-    calls = {"n": 0}
-
-    def crash_in_the_second_case(self, task, u):
-        if task.name == "room1to3":
-            calls["n"] += 1
-            if calls["n"] == 15:
-                raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
-    with monkeypatch.context() as m:
-        m.setattr(Drago, "gradient_step", crash_in_the_second_case)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            transfer(source, *args)
+    with crash_at_gradient_step(Drago, 15, task="room1to3"), pytest.raises(RuntimeError, match="simulated crash"):
+        transfer(source, *args)
     assert (cases[0] / "checkpoints" / "task1_room1to2.pt").is_file()
     assert (cases[1] / "checkpoints" / "resume.pt").is_file()
     assert not cases[2].exists() and not cases[3].exists()

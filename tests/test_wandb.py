@@ -23,7 +23,7 @@ from drago.api import load_config, train
 from drago.config import Config, ConfigError
 from drago.continual.naive import Continual
 from drago.training.tracking import default_run_name, last_logged_step
-from helpers import one_thread_env, sigkill_in_task_two
+from helpers import crash_at_gradient_step, one_thread_env, sigkill_in_task_two
 
 needs_wandb = pytest.mark.skipif(
     importlib.util.find_spec("wandb") is None,
@@ -137,20 +137,10 @@ def test_a_resumed_run_continues_the_same_wandb_run_without_repeating_a_step(off
     wandb_dir.mkdir(parents=True)  # W&B falls back to the working directory when WANDB_DIR does not exist
     monkeypatch.setenv("WANDB_DIR", str(wandb_dir))  # W&B's files away from the run: the resume still finds them
     run = tmp_path / "run"
-    original = Continual.gradient_step
-    calls = {"updates": 0}
-
-    def crashing_gradient_step(self, task, u):
-        calls["updates"] += 1
-        if calls["updates"] > 15:  # in episode 4: episode 3 (step 300) is logged past the checkpoint at 200
-            raise RuntimeError("simulated crash")
-        return original(self, task, u)
-
     overrides = ["env.tasks=[room1]", "train.wandb=offline", "train.tensorboard=false"]
-    with monkeypatch.context() as m:
-        m.setattr(Continual, "gradient_step", crashing_gradient_step)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            cli.main(["train", "smoke", "--out", str(run), "--no-progress", *overrides])
+    # in episode 4: episode 3 (step 300) is logged past the checkpoint at 200
+    with crash_at_gradient_step(Continual, 16), pytest.raises(RuntimeError, match="simulated crash"):
+        cli.main(["train", "smoke", "--out", str(run), "--no-progress", *overrides])
     run_id = json.loads((run / "wandb.json").read_text())["id"]
     assert cli.main(["resume", str(run), "--no-progress"]) == 0
     assert json.loads((run / "wandb.json").read_text())["id"] == run_id

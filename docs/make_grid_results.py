@@ -29,6 +29,7 @@ from drago.training.records import find_records, read_record
 
 DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
+_docs = DOCS  # where the files are written: the docs folder, or --docs (a copy, for tests)
 START, END = "<!-- grid-records:start -->", "<!-- grid-records:end -->"
 ROOMS = ("room1", "room2", "room3", "room4")
 LEARNED = 0.80  # a room counts as learned at this fraction of its DP optimum at its task's end (issue's bar)
@@ -78,6 +79,35 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
     return units
 
 
+WHAT = {
+    "grid_records_final.csv": "fraction of the DP optimum each training task of a unit ended at",
+    "grid_records_coverage.csv": "world-model exact-match coverage per room after each stage",
+    "grid_records_zero_shot.csv": "zero-shot return (retained model + true reward) per stage and task, as a "
+                                  "fraction of the DP optimum",
+    "grid_records_transfers.csv": "few-shot return of each transfer case after 20 learner episodes, as a fraction "
+                                  "of the DP optimum",
+}
+
+
+def write_sources(units: list[dict], folder: Path) -> Path:
+    """The data files' entries in docs/data/sources.json: what, the command, and the records' dates, commits
+    and machines."""
+    path = _docs / "data" / "sources.json"
+    sources = json.loads(path.read_text())
+    for name, what in WHAT.items():
+        sources[name] = {
+            "what": f"The grid study from its records: {what}, per method and seed",
+            "command": f".venv/bin/python docs/make_grid_results.py --records {folder} (from drago study --jobs 2 "
+                       f"--records {folder})",
+            "preset": "minigrid-cpu", "units": len(units),
+            "date": sorted({u["provenance"]["recorded"][:10] for u in units}),
+            "commit": sorted({str(u["provenance"]["commit"])[:7] for u in units}),
+            "machine": sorted({f"{u['provenance']['cpu']}, torch {u['provenance']['torch']}, "
+                               f"{u['provenance']['threads']} thread(s)" for u in units})}
+    path.write_text(json.dumps(sources, indent=2, ensure_ascii=False) + "\n")
+    return path
+
+
 def write_data(units: list[dict]) -> list[Path]:
     out = []
     rows = [{"method": u["method"], "seed": u["seed"], "task": task, "fraction_of_optimal": frac}
@@ -96,7 +126,7 @@ def write_data(units: list[dict]) -> list[Path]:
 
 
 def _write(name: str, rows: list[dict], columns: tuple[str, ...]) -> Path:
-    path = DOCS / "data" / name
+    path = _docs / "data" / name
     handle = io.StringIO(newline="")
     writer = csv.DictWriter(handle, fieldnames=columns, lineterminator="\n")
     writer.writeheader()
@@ -206,12 +236,15 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=Path, default=Path("results/grid"))
     parser.add_argument("--preset", default="minigrid-cpu", help="the study's preset; records of others are left out")
+    parser.add_argument("--docs", type=Path, default=DOCS, help="the docs folder to write into (default: this one)")
     args = parser.parse_args()
+    global _docs
+    _docs = args.docs.resolve()
     os.chdir(ROOT)  # records are named by their path from the repository's root, on every machine
     folder = args.records
     units = load(folder, args.preset)
-    for path in write_data(units):
-        print(f"wrote {path.relative_to(ROOT)}")
+    for path in [*write_data(units), write_sources(units, folder)]:
+        print(f"wrote {path}")
     if units:
         import shutil
         import tempfile
@@ -220,7 +253,7 @@ def main() -> int:
 
         # report.md and its figures only: the site renders the Markdown page, and a report.html beside it would
         # be a second page of the same name.
-        target = DOCS / "grid-report"
+        target = _docs / "grid-report"
         shutil.rmtree(target, ignore_errors=True)
         target.mkdir()
         with tempfile.TemporaryDirectory() as scratch:
@@ -228,8 +261,8 @@ def main() -> int:
             for path in sorted(Path(scratch).iterdir()):
                 if path.suffix in (".md", ".png"):
                     shutil.copy(path, target / path.name)
-                    print(f"wrote {(target / path.name).relative_to(ROOT)}")
-    page = DOCS / "results.md"
+                    print(f"wrote {target / path.name}")
+    page = _docs / "results.md"
     text = page.read_text()
     if START not in text or END not in text:
         print(f"{page} has no {START} ... {END} markers", file=sys.stderr)
@@ -237,7 +270,7 @@ def main() -> int:
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
     page.write_text(f"{head}{START}\n{section(units, folder)}\n{END}{tail}")
-    print(f"wrote {page.relative_to(ROOT)}")
+    print(f"wrote {page}")
     return 0
 
 

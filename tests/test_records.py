@@ -235,3 +235,29 @@ def test_a_slurm_studys_report_job_records_the_units_before_its_report(tmp_path)
 
     argv = report_argv(plan(tmp_path / "s", tmp_path / "r"))
     assert argv[argv.index("--records") + 1] == str(tmp_path / "r") and "--report-only" in argv
+
+
+def test_the_results_page_section_is_regenerated_from_the_records(recorded, tmp_path):
+    """docs/make_grid_results.py: the data files, the records' report and the page's section, from records only."""
+    import subprocess
+    import sys
+
+    _, records = recorded
+    root = Path(__file__).resolve().parents[1]
+    docs = tmp_path / "docs"
+    (docs / "data").mkdir(parents=True)
+    (docs / "data" / "sources.json").write_text("{}")
+    (docs / "results.md").write_text("# Results\n\n<!-- grid-records:start -->\nold\n<!-- grid-records:end -->\n\nrest\n")
+    done = subprocess.run([sys.executable, str(root / "docs" / "make_grid_results.py"), "--records", str(records),
+                           "--preset", "smoke", "--docs", str(docs)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    page = (docs / "results.md").read_text()
+    assert "\nold\n" not in page and page.endswith("\n\nrest\n")
+    assert "**2 of 21 units recorded**" in page
+    assert "| `continual` | rooms " in page and "| `ewc` | to do | to do | to do |" in page
+    assert "pending: 0 and 1 of 3 seeds recorded" in page  # drago against continual: one seed of continual only
+    rows = (docs / "data" / "grid_records_final.csv").read_text().splitlines()
+    assert rows[0] == "method,seed,task,fraction_of_optimal" and len(rows) == 1 + 2 * 4
+    assert (docs / "grid-report" / "report.md").is_file() and not (docs / "grid-report" / "report.html").exists()
+    sources = json.loads((docs / "data" / "sources.json").read_text())
+    assert sources["grid_records_final.csv"]["units"] == 2 and sources["grid_records_final.csv"]["commit"]

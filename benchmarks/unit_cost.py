@@ -68,7 +68,14 @@ def breakdown(record: dict, update_shares: dict[str, float] | None) -> list[dict
             parts["updates: learner (and VAE on DRAGO's first task)"] += update
     for name in files:
         if name.startswith("transfer/") and name.endswith("/summary.json") and name.count("/") == 2:
-            parts["transfers (4 cases, 20 episodes each)"] += float(json.loads(files[name])["wall_time_s"])
+            case = name.rsplit("/", 1)[0]
+            wall = float(json.loads(files[name])["wall_time_s"])
+            rows = _rows(files.get(f"{case}/timing.csv", ""))
+            split = {key: sum(float(r[key]) for r in rows) for key in ("collect_s", "update_s", "eval_s")}
+            parts["transfers: updates"] += split["update_s"]
+            parts["transfers: acting"] += split["collect_s"]
+            parts["transfers: evaluation episodes (after every learner episode)"] += split["eval_s"]
+            parts["transfers: checkpoints, logging, set-up"] += max(0.0, wall - sum(split.values()))
     for name, seconds in (record.get("evaluation_cpu_s") or {}).items():
         parts[f"evaluation from checkpoints: {name}"] += float(seconds)
         how[f"evaluation from checkpoints: {name}"] = "CPU s"

@@ -66,7 +66,7 @@ __all__ = [
     "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
     "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
     "reviewer_pay_of_run", "plugin_packages", "describe_settings_fully", "MethodSetting",
-    "RecordError", "read_record", "record_run", "components_checkpoints",
+    "RecordError", "read_record", "record_run", "recorded_evaluation", "components_checkpoints",
     "components_of_run", "costs_of_run", "evaluate_components",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "Record", "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
@@ -139,6 +139,28 @@ def train(cfg: Config, out: str | Path | None = None, force: bool = False, progr
     finally:
         trainer.logger.close()
     return Run(run_dir)
+
+
+def recorded_evaluation(record: str | Path, filename: str) -> list[dict]:
+    """The rows of an evaluation file a record holds (``coverage.csv``, ``zero_shot.csv``, ``retention.csv``,
+    ...), numbers as numbers; empty when the record has no such file.
+
+    Raises:
+        RecordError: a corrupt record or one of another format version (one line).
+    """
+    import csv
+    import io
+
+    def value(text: str):
+        for kind in (int, float):
+            try:
+                return kind(text)
+            except ValueError:
+                pass
+        return text
+
+    text = read_record(record)["files"].get(filename)
+    return [] if text is None else [{k: value(v) for k, v in row.items()} for row in csv.DictReader(io.StringIO(text))]
 
 
 def record_run(run_dir: str | Path, out: str | Path | None = None) -> tuple[Path, dict]:

@@ -256,19 +256,31 @@ def _cmd_eval_components(args: argparse.Namespace) -> int:
 
 def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: str, title: str, table) -> list[dict]:
     """Measure every run's world models into a CSV per run (and optionally one for all), with a text table;
-    returns every run's rows."""
+    returns every run's rows. A record (``*.json.gz``) gives the evaluation it recorded, read, not measured:
+    its checkpoints stayed on the machine that trained it."""
+    from drago.api import recorded_evaluation
+
+    records = [path for path in args.run_dirs if path.name.endswith(".json.gz")]
+    run_dirs = [path for path in args.run_dirs if path not in records]
     # Check every run before evaluating any, so a typo in the last argument fails at once.
-    for run_dir in args.run_dirs:
+    for run_dir in run_dirs:
         check(run_dir)
     rows = []
-    for run_dir in args.run_dirs:
+    for record in records:
+        found = recorded_evaluation(record, filename)
+        if not found:
+            raise UsageError(f"{record} holds no {filename}; it was not recorded for this run's domain")
+        rows.extend(found)
+    for run_dir in run_dirs:
         run_rows = measure(run_dir)
         write(run_rows, run_dir / filename)
         rows.extend(run_rows)
     print(title)
     for line in table(rows):
         print(line)
-    for run_dir in args.run_dirs:
+    for record in records:
+        print(f"read {filename} from the record {record}")
+    for run_dir in run_dirs:
         print(f"wrote {run_dir / filename}")
     if args.out is not None:
         print(f"wrote {write(rows, args.out)}")

@@ -261,3 +261,19 @@ def test_the_results_page_section_is_regenerated_from_the_records(recorded, tmp_
     assert (docs / "grid-report" / "report.md").is_file() and not (docs / "grid-report" / "report.html").exists()
     sources = json.loads((docs / "data" / "sources.json").read_text())
     assert sources["grid_records_final.csv"]["units"] == 2 and sources["grid_records_final.csv"]["commit"]
+
+
+def test_eval_tables_read_a_records_recorded_evaluation(recorded, capsys):
+    out, records = recorded
+    record = records / "continual" / "seed1.json.gz"
+    assert cli.main(["eval", "coverage", str(record)]) == 0
+    from_record = capsys.readouterr().out
+    assert cli.main(["eval", "coverage", str(out / "continual" / "seed1")]) == 0
+    from_run = capsys.readouterr().out
+    def cells(text: str) -> list[list[str]]:  # each stage's row without its first column (how the run is named)
+        return [line.split()[1:] for line in text.splitlines() if line.split()[1:2] in (["1"], ["2"], ["3"], ["4"])]
+
+    assert len(cells(from_record)) == 4 and cells(from_record) == cells(from_run)
+    assert f"read coverage.csv from the record {record}" in from_record
+    assert cli.main(["eval", "heldout", str(record)]) == 2  # a grid unit records no held-out retention
+    assert "holds no retention.csv" in capsys.readouterr().err

@@ -73,6 +73,7 @@ from drago.eval.zero_shot import (
     TIE_TOLERANCE,
     Dynamics,
     LatticeModel,
+    LatticePlanner,
     decode_obs,
     lattice_model,
     lattice_observations,
@@ -206,12 +207,14 @@ def _head_values(model: torch.nn.Module, heads: TaskHeads) -> tuple[np.ndarray, 
     return rewards, values
 
 
-class HeadsPlanner:
+class HeadsPlanner(LatticePlanner):
     """Receding-horizon DP over a model's lattice table with a task's learned reward and value (see the module
-    docstring): the best ``horizon``-step return ``sum gamma^t r_hat + gamma^H V_hat`` of each first action."""
+    docstring): the best ``horizon``-step return ``sum gamma^t r_hat + gamma^H V_hat`` of each first action;
+    acting and tie-breaking are the zero-shot planner's."""
 
     def __init__(self, lattice: LatticeModel, rewards: np.ndarray, values: np.ndarray, horizon: int,
                  discount: float):
+        # Not LatticePlanner's set-up, which tabulates the true reward: the heads' reward and value replace it.
         self.successor = lattice.successor
         self.reward = rewards
         self.discount = float(discount)
@@ -223,13 +226,8 @@ class HeadsPlanner:
     def action_values(self, state: int, steps_left: int) -> np.ndarray:
         return self.reward[state] + self.discount * self.last[self.successor[state]]
 
-    def act(self, state: int, steps_left: int, generator: torch.Generator) -> int:
-        q = self.action_values(state, steps_left).tolist()
-        top = max(q)
-        best = [a for a, value in enumerate(q) if value >= top - TIE_TOLERANCE * max(1.0, abs(top))]
-        if len(best) == 1:
-            return best[0]
-        return best[int(torch.randint(len(best), (1,), generator=generator))]
+    def tie_tolerance(self, top: float) -> float:
+        return TIE_TOLERANCE * max(1.0, abs(top))  # learned values reach hundreds, summed in float64 from float32
 
 
 def heads_return(model: torch.nn.Module, heads: TaskHeads, task: GridTask, horizon: int, discount: float,

@@ -256,11 +256,15 @@ class LatticePlanner:
         h = max(1, min(self.horizon, int(steps_left)))
         return self.reward[state] + self.values[h - 1][self.successor[state]]
 
+    def tie_tolerance(self, top: float) -> float:
+        """How close to the best an action's value must be to count as equally good."""
+        return TIE_TOLERANCE
+
     def act(self, state: int, steps_left: int, generator: torch.Generator) -> int:
         """The best first action from ``state``; among equally good ones, one drawn from ``generator``."""
         q = self.action_values(state, steps_left).tolist()
         top = max(q)
-        best = [a for a, value in enumerate(q) if value >= top - TIE_TOLERANCE]
+        best = [a for a, value in enumerate(q) if value >= top - self.tie_tolerance(top)]
         if len(best) == 1:
             return best[0]
         return best[int(torch.randint(len(best), (1,), generator=generator))]

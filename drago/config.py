@@ -693,8 +693,9 @@ def _check_domain_and_tasks(cfg: Config) -> None:
         raise ConfigError(f"unknown domain '{env.domain}'; valid domains: {', '.join(available_domains())}, "
                           "or dmc:DOMAIN for a stock DeepMind Control domain")
     domain = get_domain(env.domain)
-    if env.domain == "minigrid" and env.action_repeat != 1:
-        raise ConfigError(f"setting 'env.action_repeat' must be 1 for the grid, got {env.action_repeat}")
+    if domain.tabular and env.action_repeat != 1:  # one agent step must stay one transition of the table
+        raise ConfigError(f"setting 'env.action_repeat' must be 1 for the grid and other tabular domains "
+                          f"({env.domain}), got {env.action_repeat}")
     if not domain.dense_reward and env.dense_reward is not None:
         raise ConfigError(f"setting 'env.dense_reward' applies to the grid only; leave it unset for {env.domain}")
     if not domain.dense_reward and cfg.transfer.reward is not None:
@@ -709,9 +710,10 @@ def _check_domain_and_tasks(cfg: Config) -> None:
     for task in env.tasks:
         if task not in valid_tasks:
             raise ConfigError(f"unknown task '{task}' for domain {env.domain}; valid tasks: " + ", ".join(valid_tasks))
-    if cfg.transfer.pre_rollout_checkpoint is not None and env.domain == "minigrid":
-        raise ConfigError("setting 'transfer.pre_rollout_checkpoint' applies to DeepMind Control test tasks, "
-                          "not to the grid")
+    if cfg.transfer.pre_rollout_checkpoint is not None and domain.tabular:
+        # A tabular task's optimum and exact evaluations assume each episode starts at the task's start.
+        raise ConfigError(f"setting 'transfer.pre_rollout_checkpoint' applies to DeepMind Control test tasks, "
+                          f"not to the grid or other tabular domains ({env.domain})")
 
 
 def _check_relations(cfg: Config) -> None:
@@ -724,9 +726,10 @@ def _check_relations(cfg: Config) -> None:
         raise ConfigError(f"agent.pets_elites ({agent.pets_elites}) must not exceed agent.pets_population "
                           f"({agent.pets_population})")
     if agent.kind == "pets":
-        if agent.pets_reward == "known" and cfg.env.domain != "minigrid":
-            raise ConfigError(f"agent.pets_reward=known needs a reward known as a function of observations, the "
-                              f"grid's (env.domain=minigrid); {cfg.env.domain} has none: use agent.pets_reward=learned")
+        if agent.pets_reward == "known" and get_domain(cfg.env.domain).known_reward is None:
+            raise ConfigError(f"agent.pets_reward=known needs a reward known as a function of observations, as the "
+                              f"grid's (env.domain=minigrid); {cfg.env.domain} declares none: use "
+                              "agent.pets_reward=learned")
         for key, value, plain in (("precision", agent.precision, "float32"), ("compile", agent.compile, "false")):
             if value not in ("auto", plain):
                 raise ConfigError(f"setting 'agent.{key}' applies to TD-MPC; agent.kind=pets runs in float32, "

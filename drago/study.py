@@ -55,7 +55,6 @@ from drago.training.records import RECORD_SUFFIX, RecordError, protocol_diffs, r
 from drago.training.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
 from drago.training.transfer import (
     DEFAULT_EPISODES,
-    PAPER_CASES,
     default_transfer_dir,
     few_shot_schedule,
     plan_transfer,
@@ -302,7 +301,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
         cases = tuple(dict.fromkeys((str(task), int(after)) for task, after in cases))
         _check_cases(base, cases, n_tasks)
     else:
-        cases = PAPER_CASES.get(base.env.domain, ())
+        cases = get_domain(base.env.domain).transfer_cases
     cases = cases if transfers else ()
     kept = tuple((task, after) for task, after in cases if after <= n_tasks)
     plan = StudyPlan(preset=preset, out=out, methods=methods, seeds=seeds, overrides=overrides,
@@ -312,7 +311,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                      transfer_few_shot_episodes=transfer_few_shot_episodes, own_cases=bool(cases) and not paper,
                      records=None if records is None else Path(records))
     if transfers and not cases:
-        plan.notes.append(f"the paper has no transfer cases for domain {base.env.domain}: none planned")
+        plan.notes.append(f"domain {base.env.domain} declares no transfer cases: none planned")
     left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
     if left_out:
         plan.notes.append(f"transfer cases left out, the sequence has {n_tasks} task{'s' * (n_tasks != 1)}: "

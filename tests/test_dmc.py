@@ -345,7 +345,7 @@ def test_presets(preset, tasks, repeat, length, horizon):
     (["env.domain=cheetah"], "unknown task 'room1' for domain cheetah; valid tasks: cheetah-run"),
     (["env.tasks=[walker-run]"], "unknown task 'walker-run' for domain minigrid"),
     (["env.domain=walker", "env.tasks=[walker-run]", "env.dense_reward=true"], "applies to the grid only"),
-    (["env.action_repeat=2"], "must be 1 for the grid"),
+    (["env.action_repeat=2"], "must be 1 for the grid and other tabular domains"),
 ])
 def test_config_errors_name_the_problem(overrides, message):
     with pytest.raises(ConfigError, match=message.replace("[", r"\[")):

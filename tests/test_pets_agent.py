@@ -137,7 +137,8 @@ def test_coverage_zero_shot_and_the_predictor_read_the_ensemble_mean(pets_runs):
 
 def test_the_four_grid_transfer_cases_run_from_a_pets_run_with_dense_reward(pets_runs, tmp_path, capsys):
     from drago.study import plan_study
-    from drago.training.transfer import PAPER_CASES, transfer_config
+    from drago.envs import get_domain
+    from drago.training.transfer import transfer_config
 
     run = pets_runs("drago")
     out = tmp_path / "room1to2"
@@ -148,7 +149,7 @@ def test_the_four_grid_transfer_cases_run_from_a_pets_run_with_dense_reward(pets
     assert load_checkpoint(out / "checkpoints" / "task1_room1to2.pt")["config"]["agent"]["kind"] == "pets"
     # On the four-task preset every case of the paper is planned, each a dense PETS transfer.
     source = load_config("minigrid-pets-cpu", method="drago")
-    for task, after in PAPER_CASES["minigrid"]:
+    for task, after in get_domain("minigrid").transfer_cases:
         cfg = transfer_config(source, task, "task.pt", after)
         assert cfg.env.dense_reward is True and cfg.agent.kind == "pets"
     plan = plan_study("minigrid-pets-cpu", methods=["drago", "continual", "scratch"], seeds=[1],

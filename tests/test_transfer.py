@@ -22,7 +22,7 @@ from drago.continual.drago import Drago
 from drago.envs import task_optimum
 from drago.training.checkpoint import load_checkpoint
 from drago.training.rundir import read_run_config
-from drago.training.transfer import PAPER_CASES, reward_variant
+from drago.training.transfer import paper_cases, reward_variant
 from helpers import QUIET, crash_at_gradient_step, read_csv
 
 TWO_TASKS = "env.tasks=[room1,room2]"
@@ -233,7 +233,7 @@ def test_resume_after_a_crash_gives_the_uninterrupted_logs(sources, tmp_path, mo
 def test_paper_cases_run_in_turn_skip_finished_ones_and_resume_unfinished_ones(smoke_runs, tmp_path, monkeypatch,
                                                                              capsys):
     source = smoke_runs("drago")
-    cases = [source / "transfer" / f"{task}-after{k}" for task, k in PAPER_CASES["minigrid"]]
+    cases = [source / "transfer" / f"{task}-after{k}" for task, k in paper_cases("minigrid")]
     assert [c.name for c in cases] == ["room1to2-after2", "room1to3-after3", "room1to3-after4", "room3to4-after4"]
     args = ["--paper-cases", "--episodes", "2"]
 
@@ -485,7 +485,7 @@ def test_x2y_transfer_is_deterministic_and_resumes_after_a_crash(jump2run, cheet
 @needs_dmc
 def test_dmc_paper_cases_follow_table_1(cheetah_source, tmp_path):
     out = tmp_path / "cases"
-    assert PAPER_CASES["cheetah"] == (("jump2run", 2), ("jump2back", 3), ("jump-and-run", 2), ("jump-and-back", 3))
+    assert paper_cases("cheetah") == (("jump2run", 2), ("jump2back", 3), ("jump-and-run", 2), ("jump-and-back", 3))
     assert transfer(cheetah_source, "--paper-cases", "--episodes", "1", "--out", str(out)) == 0
     ckpts = cheetah_source / "checkpoints"
     expected = {  # case: (target, world model after, pre-rollout learner)

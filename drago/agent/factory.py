@@ -23,9 +23,7 @@ from drago.agent.pets import (
     make_optimizer,
 )
 from drago.config import Config
-from drago.envs import EnvSpec
-from drago.envs.grid_reward import true_reward
-from drago.envs.tasks import get_grid_task
+from drago.envs import EnvSpec, get_domain
 
 __all__ = ["build_agent", "build_world_model", "build_world_optimizer", "pets_config", "replay_horizon"]
 
@@ -59,8 +57,8 @@ def build_world_optimizer(cfg: Config, world_model: nn.Module) -> torch.optim.Op
 
 
 def _known_reward(cfg: Config, task: str) -> RewardFn:
-    grid_task = get_grid_task(task, dense=cfg.env.dense_reward)
-    return lambda obs, action, next_obs: true_reward(grid_task, obs, action, next_obs).to(obs.dtype)
+    reward = get_domain(cfg.env.domain).known_reward(task, cfg.env.dense_reward)
+    return lambda obs, action, next_obs: reward(obs, action, next_obs).to(obs.dtype)
 
 
 def build_agent(cfg: Config, spec: EnvSpec, world_model: nn.Module, world_optimizer: torch.optim.Optimizer | None,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from drago.envs.builtin import CHEETAH, MINIGRID, WALKER
+from drago.envs.builtin import CHEETAH, GRID_DOMAIN, MINIGRID, WALKER
 from drago.envs.domain import Domain, DomainError, EnvSpec
 from drago.envs.gym_envs import FlatEnv, TransitionReward, gym_domain, reward_variant
 from drago.envs.registry import (ENTRY_POINT_GROUP, PluginProblem, available_domains, domain_families, get_domain,
@@ -90,6 +90,12 @@ def _check_env(d: Domain, task: str, env: gym.Env) -> None:
                           f"({spec.action_dim},): a domain's tasks must share their sizes")
 
 
+def exact_world(domain: str) -> str | None:
+    """The exact world whose evaluations apply to a domain's runs (:attr:`Domain.exact_world`); None for a
+    domain without one, or one that is not registered here (a plug-in that is not installed)."""
+    return get_domain(domain).exact_world if is_domain(domain) else None
+
+
 def task_optimum(domain: str, task: str, dense_reward: bool | None = None) -> float | None:
     """The exact optimal return of a task where one is known (grid: finite-horizon DP), else None."""
     d = get_domain(domain)
@@ -103,8 +109,9 @@ gym.register(id="MiniGrid-FourRooms-New", entry_point="drago.envs.fourrooms:make
              max_episode_steps=None)
 
 __all__ = ["DMC_SEQUENCES", "DMC_TASKS", "DMC_TRANSFER_TASKS", "DOMAINS", "DOMAIN_SPECS", "ENTRY_POINT_GROUP",
+           "GRID_DOMAIN",
            "GRID_SEQUENCES", "GRID_TASKS", "DmcTask", "DmcTransferTask", "Domain", "DomainError", "EnvSpec", "FlatEnv",
            "GridTask", "PluginProblem", "TransitionReward", "available_domains", "available_tasks", "domain_families",
-           "env_spec", "get_domain", "get_grid_task", "gym_domain", "is_domain", "load_plugins", "make_env",
+           "env_spec", "exact_world", "get_domain", "get_grid_task", "gym_domain", "is_domain", "load_plugins", "make_env",
            "plugin_problems", "register_domain", "reward_variant", "source_of", "task_descriptions", "task_optimum",
            "unregister_domain"]

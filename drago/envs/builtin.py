@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from drago.envs.domain import Domain, EnvSpec
 from drago.envs.gym_envs import gym_domain, reward_variant
-from drago.envs.tasks import DMC_SEQUENCES, DMC_TASKS, GRID_SEQUENCES, GRID_TASKS, get_grid_task
+from drago.envs.tasks import DMC_SEQUENCES, DMC_TASKS, DMC_TRANSFER_TASKS, GRID_SEQUENCES, GRID_TASKS, get_grid_task
 
-__all__ = ["BUILTIN_DOMAINS", "CHEETAH", "MINIGRID", "PENDULUM", "PENDULUM_TASKS", "WALKER", "pendulum_keep_low_reward",
+__all__ = ["BUILTIN_DOMAINS", "CHEETAH", "GRID_DOMAIN", "MINIGRID", "PENDULUM", "PENDULUM_TASKS", "WALKER", "pendulum_keep_low_reward",
            "pendulum_spin_reward"]
 
 
@@ -30,6 +30,13 @@ def _grid_optimum(task: str, dense_reward: bool | None = None) -> float:
     return optimal_return(get_grid_task(task, dense=dense_reward))
 
 
+def _grid_reward(task: str, dense_reward: bool | None = None):
+    from drago.envs.grid_reward import true_reward  # imports torch: only when a planner asks for it
+
+    grid_task = get_grid_task(task, dense=dense_reward)
+    return lambda obs, action, next_obs: true_reward(grid_task, obs, action, next_obs)
+
+
 MINIGRID = Domain(
     name="minigrid",
     spec=EnvSpec("minigrid", obs_dim=3, action_dim=3, discrete=True),
@@ -38,7 +45,14 @@ MINIGRID = Domain(
     make=_make_grid, episode_length=100, action_repeat=1, optimum=_grid_optimum, tabular=True,
     sequences=GRID_SEQUENCES, dense_reward=True, requires=("minigrid",),
     description="the paper's 27 x 27 four-rooms grid (drago/envs/fourrooms.py)",
+    # Paper Appendix C: the test tasks and the stage of the sequence each is learned after.
+    transfer_cases=(("room1to2", 2), ("room1to3", 3), ("room1to3", 4), ("room3to4", 4)),
+    dense_by_default={name: t.dense for name, t in GRID_TASKS.items()},
+    known_reward=_grid_reward, exact_world="four-rooms",
 )
+
+#: The domain that builds the four-rooms world's envs, for the exact evaluations that step it.
+GRID_DOMAIN = MINIGRID.name
 
 
 # ---- DeepMind Control: cheetah and walker ------------------------------------------------------------
@@ -58,6 +72,8 @@ def _dmc_domain(name: str, obs_dim: int, action_repeat: int, episode_length: int
         tasks={t: f"{task.description}; reward {task.reward}" for t, task in DMC_TASKS.items() if task.domain == name},
         make=_make_dmc, episode_length=episode_length, action_repeat=action_repeat,
         sequences={name: DMC_SEQUENCES[name]}, requires=("dm_control",), description=what,
+        # Paper §4.4, Table 1: the test tasks and the stage of the paper's sequence each is learned after.
+        transfer_cases=tuple((t.name, t.stage) for t in DMC_TRANSFER_TASKS.values() if t.domain == name),
     )
 
 

@@ -17,7 +17,11 @@ import numpy as np
 
 from drago.plugins import one_line  # re-exported: the domain modules say what to fix in one line
 
-__all__ = ["ActionScaler", "Domain", "DomainError", "EnvSpec", "one_line"]
+__all__ = ["EXACT_WORLDS", "ActionScaler", "Domain", "DomainError", "EnvSpec", "RewardFunction", "one_line"]
+
+#: The worlds whose every transition drago's exact evaluations can enumerate and step (coverage, zero-shot
+#: planning, per-component probes, heatmaps, visitation maps): today one, the paper's four-rooms map.
+EXACT_WORLDS = ("four-rooms",)
 
 
 class DomainError(ValueError):
@@ -36,6 +40,8 @@ class EnvSpec:
 
 #: Signature of :attr:`Domain.make`.
 EnvFactory = Callable[..., Any]
+#: ``reward(obs, action, next_obs)`` on batched tensors, returning one reward per row: a task's true reward.
+RewardFunction = Callable[[Any, Any, Any], Any]
 
 _TASK_NAME = re.compile(r"[^\s,\[\]=\"']+")
 
@@ -69,6 +75,19 @@ class Domain:
         dense_reward: True if the domain takes ``dense_reward`` (a dense or a sparse reward per task).
         requires: Modules the domain needs (``("dm_control",)``), for a config check before a run.
         description: One line on the domain, for ``drago list``.
+        transfer_cases: The domain's standard few-shot transfer cases, ``(test task, after stage K)`` of its
+            first sequence: what ``drago study`` and ``drago transfer --paper-cases`` run (the paper's, for the
+            built-in domains). A test task is a task of the domain or a name ``drago transfer`` resolves
+            (DeepMind Control's test tasks of the paper's Table 1).
+        dense_by_default: For a domain that takes ``dense_reward``: each task's reward when none is asked
+            (True: dense); a task left out has no default the reports can name.
+        known_reward: ``known_reward(task, dense_reward)`` returns the task's true reward as a
+            :data:`RewardFunction` of observations, for planners told the reward (PETS's
+            ``agent.pets_reward=known``) and zero-shot planning; None: the reward is known only to the env.
+        exact_world: One of :data:`EXACT_WORLDS` when the domain's dynamics are that world's, whatever its
+            tasks: the exact evaluations (coverage, heatmaps, visitation maps; zero-shot planning and the
+            component probes with a known reward and optimum too) then apply to its runs. None: the
+            domain's runs get the sampled held-out sets instead.
     """
 
     name: str
@@ -83,6 +102,10 @@ class Domain:
     dense_reward: bool = False
     requires: tuple[str, ...] = ()
     description: str = ""
+    transfer_cases: tuple[tuple[str, int], ...] = ()
+    dense_by_default: Mapping[str, bool] = field(default_factory=dict)
+    known_reward: Callable[[str, bool | None], RewardFunction] | None = None
+    exact_world: str | None = None
     _cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -123,6 +146,28 @@ class Domain:
             sequences[seq] = members
         object.__setattr__(self, "sequences", MappingProxyType(sequences))
         object.__setattr__(self, "requires", tuple(self.requires))
+        self._check_capabilities(where)
+
+    def _check_capabilities(self, where: str) -> None:
+        cases = []
+        for case in self.transfer_cases:
+            task, after = case if isinstance(case, (tuple, list)) and len(case) == 2 else (None, None)
+            if (not isinstance(task, str) or not _TASK_NAME.fullmatch(task) or isinstance(after, bool)
+                    or not isinstance(after, int) or after < 1):
+                raise DomainError(f"{where}: transfer case {case!r} must be (task name, stage K >= 1)")
+            cases.append((task, after))
+        object.__setattr__(self, "transfer_cases", tuple(cases))
+        unknown = [t for t in self.dense_by_default if t not in self.tasks]
+        if unknown or (self.dense_by_default and not self.dense_reward):
+            raise DomainError(f"{where}: dense_by_default names "
+                              + (f"unknown tasks {unknown}" if unknown else "tasks of a domain without dense_reward"))
+        object.__setattr__(self, "dense_by_default", MappingProxyType(
+            {task: bool(dense) for task, dense in self.dense_by_default.items()}))
+        if self.known_reward is not None and not callable(self.known_reward):
+            raise DomainError(f"{where}: known_reward must be None or a callable known_reward(task, dense_reward)")
+        if self.exact_world is not None and self.exact_world not in EXACT_WORLDS:
+            raise DomainError(f"{where}: exact_world must be None or one of {', '.join(EXACT_WORLDS)}, "
+                              f"got {self.exact_world!r}")
 
     def _check_spec(self, spec: object) -> EnvSpec:
         where = f"domain '{self.name}'"

@@ -65,7 +65,8 @@ from drago.agent.buffer import Batch
 from drago.agent.networks import TaskHeads
 from drago.config import AgentConfig
 from drago.envs.tasks import GridTask, get_grid_task
-from drago.eval.coverage import GRID_DOMAIN, grid_transitions, task_room, transition_groups
+from drago.envs import GRID_DOMAIN, exact_world
+from drago.eval.coverage import grid_transitions, task_room, transition_groups
 from drago.eval.zero_shot import (
     N_ACTIONS,
     N_LATTICE,
@@ -408,8 +409,8 @@ def _optimum(task: GridTask) -> float:
 def components_checkpoints(run_dir: str | Path):
     """The run's config and finished checkpoints, refusing a run the component measures cannot serve (cheap:
     files only, so a command given several runs refuses a bad one before measuring any)."""
-    return _run_checkpoints(Path(run_dir), ComponentsError, lambda c: None if c.env.domain == GRID_DOMAIN else
-                            "component retention is measured on the grid only for now")
+    return _run_checkpoints(Path(run_dir), ComponentsError, lambda c: None if exact_world(c.env.domain) else
+                            "component retention is measured on the grid only for now (domains on an exact world)")
 
 
 def evaluate_components(run_dir: str | Path) -> tuple[list[dict[str, Any]], list[Path]]:

@@ -31,6 +31,7 @@ from drago.envs.fourrooms import (
     FourRoomsEnv,
     traversable_cells,
 )
+from drago.envs import exact_world
 from drago.envs.tasks import GRID_TASKS, get_grid_task
 from drago.training.rundir import RunCheckpoint, RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
@@ -55,7 +56,6 @@ __all__ = [
     "write_coverage_csv",
 ]
 
-GRID_DOMAIN = "minigrid"
 # Report groups, in order: the four rooms, the five-cell opening at the centre of the wall cross
 # (it belongs to no room), and every transition together.
 ROOM_GROUPS: tuple[str, ...] = tuple(f"room{k}" for k in sorted(ROOM_BOUNDS))
@@ -251,7 +251,8 @@ def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
         drago.config.ConfigError: The run's ``config.yaml`` is invalid.
     """
     return _run_checkpoints(run_dir, CoverageError, lambda cfg: (
-        f"coverage is defined for the '{GRID_DOMAIN}' grid only" if cfg.env.domain != GRID_DOMAIN else None))
+        f"coverage is defined for the grid only (domains on an exact world); {cfg.env.domain} is not one"
+        if exact_world(cfg.env.domain) is None else None))
 
 
 def grid_world_models(checkpoints: Iterable[RunCheckpoint], device: str, refusal: str,
@@ -262,7 +263,7 @@ def grid_world_models(checkpoints: Iterable[RunCheckpoint], device: str, refusal
 
     for checkpoint in checkpoints:
         predictor = load_world_model(checkpoint.path, device=device)
-        if predictor.domain != GRID_DOMAIN:
+        if exact_world(predictor.domain) is None:
             raise error(f"{checkpoint.path} comes from domain '{predictor.domain}'; {refusal}")
         yield checkpoint, predictor
 
@@ -285,7 +286,7 @@ def coverage_of_run(run_dir: str | Path, device: str = "cpu") -> list[dict[str, 
     """
     cfg, checkpoints = run_checkpoints(run_dir)
     rows: list[dict[str, Any]] = []
-    refusal = f"coverage is defined for the '{GRID_DOMAIN}' grid only"
+    refusal = "coverage is defined for the grid only (domains on an exact world)"
     for checkpoint, predictor in grid_world_models(checkpoints, device, refusal):
         result = grid_coverage(predictor)
         for group, summary in result.rooms.items():

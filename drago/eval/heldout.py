@@ -28,7 +28,7 @@ import numpy as np
 
 from drago.agent.losses import LOG_EPS
 from drago.config import Config
-from drago.eval.coverage import GRID_DOMAIN
+from drago.envs import exact_world
 from drago.eval.predictor import load_world_model
 from drago.training.heldout_sets import HeldoutSet, load_heldout, record_heldout
 from drago.training.rundir import (HELDOUT_FOLDER, RunCheckpoint, RunDirError, heldout_path, run_checkpoints,
@@ -57,7 +57,7 @@ def heldout_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint
     """
     return run_checkpoints(run_dir, HeldoutError, lambda cfg: (
         "held-out retention is for continuous states: use `drago eval coverage` for the grid"
-        if cfg.env.domain == GRID_DOMAIN else None))
+        if exact_world(cfg.env.domain) is not None else None))
 
 
 def transition_errors(predicted: np.ndarray, next_obs: np.ndarray) -> np.ndarray:

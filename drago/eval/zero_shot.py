@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from drago.config import Config
-from drago.envs import GRID_TASKS, make_env, task_optimum
+from drago.envs import GRID_DOMAIN, GRID_TASKS, exact_world, get_domain, make_env, task_optimum
 from drago.envs.fourrooms import (
     EPISODE_LENGTH,
     SIZE,
@@ -64,7 +64,6 @@ from drago.eval.metrics import continual_metrics
 from drago.seeding import task_seed
 from drago.training.rundir import RunCheckpoint, RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
-from drago.training.transfer import PAPER_CASES
 
 __all__ = [
     "CSV_COLUMNS",
@@ -98,7 +97,6 @@ __all__ = [
     "zero_shot_matrix",
 ]
 
-GRID_DOMAIN = "minigrid"
 #: Lattice states: every (x, y, heading) of the 27 x 27 map, walls and blocks included (a model may
 #: predict one), indexed by :func:`state_index`; then one absorbing state for non-finite predictions.
 N_LATTICE = SIZE * SIZE * 4
@@ -315,7 +313,7 @@ def play(model: LatticeModel, task: GridTask, episodes: int = DEFAULT_EPISODES, 
 # ---- tasks and rows ------------------------------------------------------------------------------------
 def default_tasks(training_tasks: Sequence[str]) -> list[str]:
     """A run's training rooms, then the paper's transfer tasks on the grid, each once."""
-    return list(dict.fromkeys([*training_tasks, *(task for task, _ in PAPER_CASES[GRID_DOMAIN])]))
+    return list(dict.fromkeys([*training_tasks, *(task for task, _ in get_domain(GRID_DOMAIN).transfer_cases)]))
 
 
 def _resolve(tasks: Iterable[str], readings: Iterable[str]) -> list[GridTask]:
@@ -370,8 +368,8 @@ def run_checkpoints(run_dir: str | Path) -> tuple[Config, list[RunCheckpoint]]:
     """
     try:
         return _run_checkpoints(run_dir, ZeroShotError, lambda cfg: (
-            f"zero-shot planning needs a tabular domain with a known reward: the '{GRID_DOMAIN}' grid only"
-            if cfg.env.domain != GRID_DOMAIN else None))
+            f"zero-shot planning needs a tabular domain with a known reward: the grid only (domains on an exact "
+            f"world); {cfg.env.domain} is not one" if exact_world(cfg.env.domain) is None else None))
     except ZeroShotError:
         raise
     except RunDirError as err:  # the run directory's own reader (no such folder, no config.yaml)
@@ -408,7 +406,7 @@ def zero_shot_matrix(run_dir: str | Path, tasks: Sequence[str] | None = None, ep
     cfg, checkpoints = run_checkpoints(run_dir)
     resolved = _resolve(default_tasks(cfg.env.tasks) if tasks is None else tasks, readings)
     rows: list[dict[str, Any]] = []
-    refusal = f"zero-shot planning needs a tabular domain with a known reward: the '{GRID_DOMAIN}' grid only"
+    refusal = "zero-shot planning needs a tabular domain with a known reward: the grid only (domains on an exact world)"
     for checkpoint, predictor in grid_world_models(checkpoints, device, refusal, ZeroShotError):
         model = lattice_model(model_dynamics(predictor.world_model), device=device)
         for task in resolved:
@@ -444,7 +442,7 @@ def write_zero_shot_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
 def is_paper_case(row: dict[str, Any]) -> bool:
     """Whether a row is one of the paper's transfer cases (room1to2 after 2, room1to3 after 3 and 4,
     room3to4 after 4), at any reward reading."""
-    return (row["task"], int(row["stage"])) in PAPER_CASES[GRID_DOMAIN]
+    return (row["task"], int(row["stage"])) in get_domain(GRID_DOMAIN).transfer_cases
 
 
 def return_matrix(rows: list[dict[str, Any]], reward: str | None = None,

@@ -6,9 +6,7 @@ from collections.abc import Iterable
 from datetime import datetime
 from pathlib import Path
 
-from drago.eval.coverage import (
-    GRID_DOMAIN,
-)
+from drago.envs import exact_world
 from drago.report.components import components_section
 from drago.report.content import Figure, Findings, Notes, Section
 from drago.report.figures import CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, curves_png, heatmap_figure, transfer_png
@@ -98,7 +96,7 @@ def _build_report(found: list[tuple[Path, str]], out_dir: str | Path) -> tuple[P
                                "row is against the learner's env steps alone): the mean over seeds with its 95% "
                                "bootstrap CI as a band (no band for a single seed).", curves, CURVES_PNG))
     sections += forward_transfer_table(groups, tasks, findings)
-    if any(run.cfg.env.domain == GRID_DOMAIN for run in runs):
+    if any(exact_world(run.cfg.env.domain) for run in runs):
         matrices = {run.path: coverage_matrix(run, coverage[run.path], findings) for run in runs}
         sections += [coverage_table(groups, coverage),
                      metrics_table(groups, matrices, "metrics", "Continual-learning metrics (from coverage)",

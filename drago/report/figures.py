@@ -8,8 +8,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
+from drago.envs import exact_world
 from drago.eval.coverage import (
-    GRID_DOMAIN,
     CoverageError,
 )
 from drago.eval.stats import summarize
@@ -113,7 +113,7 @@ def heatmap_figure(groups: dict[str, list[ReportedRun]]) -> bytes | None:
     panels: dict[str, dict[int, StageMaps]] = {}
     for label, runs in groups.items():
         for run in runs:
-            if run.cfg.env.domain != GRID_DOMAIN:
+            if exact_world(run.cfg.env.domain) is None:
                 continue
             try:
                 maps = run_cell_scores(run.path)

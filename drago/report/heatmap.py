@@ -18,7 +18,7 @@ import numpy as np
 
 from drago.envs.fourrooms import SIZE, is_traversable
 from drago.envs.tasks import GRID_TASKS
-from drago.eval.coverage import GRID_DOMAIN, cell_scores, grid_coverage, grid_world_models, run_checkpoints
+from drago.eval.coverage import cell_scores, grid_coverage, grid_world_models, run_checkpoints
 from drago.eval.unit import read_cells
 from drago.training.rundir import RunCheckpoint
 
@@ -55,7 +55,7 @@ def run_cell_scores(run_dir: str | Path, device: str = "cpu") -> list[tuple[RunC
         return recorded
     _, checkpoints = run_checkpoints(run_dir)
     return [(checkpoint, cell_scores(grid_coverage(predictor).score)) for checkpoint, predictor in
-            grid_world_models(checkpoints, device, f"heatmaps are defined for the '{GRID_DOMAIN}' grid only")]
+            grid_world_models(checkpoints, device, "heatmaps are defined for the grid only (domains on an exact world)")]
 
 
 def _wall_mask() -> np.ndarray:

@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from drago.config import Config
+from drago.envs import get_domain, is_domain
 from drago.envs.tasks import GRID_TASKS
-from drago.eval.coverage import GRID_DOMAIN
 from drago.training.records import RECORD_SUFFIX, find_records, materialize, read_record
 from drago.training.rundir import (CONFIG_FILE, RESOLVED_AT_START, TRANSFER_FOLDER, RunDirError, flat_settings,
                                    read_run_config, read_summary)
@@ -188,8 +188,8 @@ def read_run(path: str | Path, shown: str = "") -> ReportedRun:
         cfg = read_run_config(path)
     except OSError as err:
         raise ReportError(f"{path / CONFIG_FILE} is not readable ({err.strerror or err})") from None
-    # DeepMind Control tasks have no known optimum, so their eval.csv has no fraction_of_optimal.
-    required = EVAL_COLUMNS if cfg.env.domain == GRID_DOMAIN else EVAL_COLUMNS[:2]
+    # A domain without a known optimum (DeepMind Control) writes no fraction_of_optimal to eval.csv.
+    required = EVAL_COLUMNS if is_domain(cfg.env.domain) and get_domain(cfg.env.domain).optimum else EVAL_COLUMNS[:2]
     return ReportedRun(path=path, cfg=cfg, summary=read_summary(path, ReportError),
                        eval_rows=_read_eval(path, required), shown=shown)
 

@@ -8,10 +8,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from drago.envs import exact_world
 from drago.eval.coverage import (
     ALL,
     COVERAGE_FILE,
-    GRID_DOMAIN,
     ROOM_GROUPS,
     CoverageError,
     coverage_of_run,
@@ -148,7 +148,7 @@ def forward_transfer_table(groups: dict[str, list[ReportedRun]], tasks: list[str
 
 def coverage_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
     """The run's coverage rows: its coverage.csv when it matches its checkpoints, else computed."""
-    if run.cfg.env.domain != GRID_DOMAIN:
+    if exact_world(run.cfg.env.domain) is None:
         return []  # its retention matrix comes from held-out sets instead
     if is_record_view(run.path):
         rows = _read_coverage(run.path / COVERAGE_FILE)
@@ -262,7 +262,7 @@ def retention_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]
     """A DeepMind Control run's retention rows from its held-out sets on disk (none is recorded here)."""
     from drago.eval.heldout import HeldoutError, heldout_checkpoints, heldout_path, retention_matrix
 
-    if run.cfg.env.domain == GRID_DOMAIN:
+    if exact_world(run.cfg.env.domain) is not None:
         return []
     if is_record_view(run.path):
         return _read_retention(run, findings)

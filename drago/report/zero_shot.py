@@ -11,7 +11,7 @@ import csv
 from pathlib import Path
 from typing import Any
 
-from drago.eval.coverage import GRID_DOMAIN
+from drago.envs import exact_world
 from drago.eval.zero_shot import (
     DEFAULT_EPISODES,
     DEFAULT_EPSILON,
@@ -32,7 +32,7 @@ from drago.training.records import is_record_view
 
 def zero_shot_rows(run: ReportedRun, findings: Findings) -> list[dict[str, Any]]:
     """The run's zero-shot rows at the evaluation's defaults (every task at its own reward reading)."""
-    if run.cfg.env.domain != GRID_DOMAIN:
+    if exact_world(run.cfg.env.domain) is None:
         return []
     file = run.path / ZERO_SHOT_FILE
     if is_record_view(run.path):

@@ -10,7 +10,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from drago.config import Config
-from drago.envs import make_env
+from drago.envs import exact_world, make_env
 from drago.training.episodes import run_episode
 from drago.training.pre_rollout import load_learner
 from drago.training.rundir import atomic_write, heldout_path, task_checkpoint_path
@@ -106,4 +106,4 @@ class HeldoutRecorder:
 
     @staticmethod
     def wanted(cfg: Config) -> bool:
-        return cfg.env.domain != "minigrid" and cfg.train.heldout_episodes > 0
+        return exact_world(cfg.env.domain) is None and cfg.train.heldout_episodes > 0

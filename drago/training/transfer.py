@@ -41,11 +41,11 @@ from typing import Any
 import numpy as np
 
 from drago.config import Config, ConfigError, validate
-from drago.envs import GRID_TASKS, available_tasks, task_optimum
-from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask, get_grid_task
+from drago.envs import available_domains, available_tasks, get_domain, task_optimum
+from drago.envs.tasks import DMC_TRANSFER_TASKS, DmcTransferTask
 from drago.training.rundir import TRANSFER_FOLDER, RunDirError, read_run_config, task_checkpoint_path
 
-__all__ = ["DEFAULT_EPISODES", "PAPER_CASES", "TransferCase", "default_transfer_dir", "describe",
+__all__ = ["DEFAULT_EPISODES", "TransferCase", "default_transfer_dir", "describe",
            "few_shot_schedule", "finished_stages", "paper_cases", "paper_transfer_plan", "plan_transfer",
            "resolve_task", "reward_variant", "stage_checkpoint", "training_returns", "transfer_config",
            "transfer_summary"]
@@ -54,14 +54,6 @@ DEFAULT_EPISODES = 20  # learner episodes of a transfer (the few-shot protocol, 
 
 TransferCase = tuple[str, int]  # (test task, stage K)
 
-#: The paper's test tasks per domain and the stage each is learned after (paper Appendix C; DeepMind Control:
-#: Table 1 as catalogued in DMC_TRANSFER_TASKS, paper §4.4, Table 1, stages in the paper's sequence).
-PAPER_CASES: dict[str, tuple[TransferCase, ...]] = {
-    "minigrid": (("room1to2", 2), ("room1to3", 3), ("room1to3", 4), ("room3to4", 4)),
-    **{domain: tuple((t.name, t.stage) for t in DMC_TRANSFER_TASKS.values() if t.domain == domain)
-       for domain in dict.fromkeys(t.domain for t in DMC_TRANSFER_TASKS.values())},
-}
-DMC_TRANSFER_TASKS_DOMAINS = frozenset(t.domain for t in DMC_TRANSFER_TASKS.values())
 
 
 def default_transfer_dir(run_dir: Path, task: str, after: int, reward: str | None = None) -> Path:
@@ -74,18 +66,20 @@ def reward_variant(source: Config, task: str, dense_reward: bool | None) -> str 
     """``"dense"`` or ``"sparse"`` when a transfer of ``task`` from a run with config ``source`` asks for another
     reward than the run's transfers default to (its ``transfer.reward``, else the task's own); None otherwise,
     and always on DeepMind Control, whose tasks have one reward each."""
-    if dense_reward is None or GRID_TASKS.get(task) is None:
+    task_default = get_domain(source.env.domain).dense_by_default.get(task)
+    if dense_reward is None or task_default is None:
         return None
-    default = (source.transfer.reward == "dense" if source.transfer.reward is not None
-               else GRID_TASKS[task].dense)
+    default = source.transfer.reward == "dense" if source.transfer.reward is not None else task_default
     return None if dense_reward == default else ("dense" if dense_reward else "sparse")
 
 
 def paper_cases(domain: str) -> tuple[TransferCase, ...]:
-    if domain not in PAPER_CASES:
-        raise RunDirError(f"the paper has no transfer cases for domain '{domain}'; "
-                          f"domains with cases: {', '.join(PAPER_CASES)}")
-    return PAPER_CASES[domain]
+    """The domain's standard transfer cases (:attr:`~drago.envs.domain.Domain.transfer_cases`)."""
+    cases = get_domain(domain).transfer_cases
+    if not cases:
+        with_cases = [name for name in available_domains() if get_domain(name).transfer_cases]
+        raise RunDirError(f"domain '{domain}' declares no transfer cases; domains with cases: {', '.join(with_cases)}")
+    return cases
 
 
 def stage_checkpoint(run_dir: Path, cfg: Config, after: int) -> Path:
@@ -205,7 +199,7 @@ def transfer_config(source: Config, task: str, checkpoint: str, after: int, epis
     cfg.transfer.pre_rollout_checkpoint = pre_rollout_checkpoint
     cfg.transfer.pre_rollout_steps = pre_rollout_steps
     cfg.transfer.pre_rollout_planning = pre_rollout_planning
-    if cfg.env.domain != "minigrid":  # the grid records none anyway; its transfer configs stay as they were
+    if get_domain(cfg.env.domain).exact_world is None:  # an exact world records none anyway: its configs stay
         cfg.train.heldout_episodes = 0  # held-out sets measure a continual sequence's retention, not a transfer
     validate(cfg)
     return cfg
@@ -270,9 +264,10 @@ def paper_transfer_plan(run_dir: Path, out: Path | None = None,
     """
     run_dir = Path(run_dir)
     source = read_run_config(run_dir)
-    cases = paper_cases(source.env.domain)
-    if source.env.domain in DMC_TRANSFER_TASKS_DOMAINS:
-        cases = tuple((task, _paper_stage(run_dir, source, DMC_TRANSFER_TASKS[task])) for task, _ in cases)
+    # A catalogued test task is learned after a task found by name, so other sequences get its stage too.
+    cases = tuple((task, after if catalogued is None else _paper_stage(run_dir, source, catalogued))
+                  for task, after in paper_cases(source.env.domain)
+                  for catalogued in [resolve_task(source, task)[1]])
     plans = []
     for task, after in cases:
         case_out = (Path(out) / f"{task}-after{after}") if out is not None else None
@@ -345,8 +340,8 @@ def transfer_summary(cfg: Config, run_dir: Path, tasks: Sequence[dict[str, Any]]
     # The last evaluation within the budget is final once the run has spent the whole budget.
     at_env_steps = reached[-1] if reached and points[-1]["total_env_steps"] >= budget else None
     dense = cfg.env.dense_reward
-    if cfg.env.domain == "minigrid" and task in GRID_TASKS:
-        dense = get_grid_task(task, dense).dense
+    if dense is None:
+        dense = get_domain(cfg.env.domain).dense_by_default.get(task)
     done = tasks[0] if tasks else None
     planned = (cfg.train.learner_steps_per_task or 0) // cfg.env.episode_length
     pre_rollout = None

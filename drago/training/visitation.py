@@ -23,7 +23,7 @@ import numpy as np
 from drago.agent.agent import random_action
 from drago.agent.buffer import EpisodeReplay
 from drago.config import Config
-from drago.envs import env_spec, make_env
+from drago.envs import env_spec, exact_world, make_env
 from drago.envs.fourrooms import SIZE
 from drago.seeding import task_seed
 from drago.training.rundir import VISITATION_FILE, write_rows_csv
@@ -74,7 +74,7 @@ class VisitationRecorder:
 
     @staticmethod
     def wanted(cfg: Config) -> bool:
-        return cfg.env.domain == "minigrid"
+        return exact_world(cfg.env.domain) is not None
 
     def __call__(self, index: int, learner: Any | None, step: int,
                  buffers: Mapping[str, EpisodeReplay] | None = None) -> None:

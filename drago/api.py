@@ -18,6 +18,10 @@ from pathlib import Path
 
 import drago.study as study  # studies: plan_study, run_study, describe_plan, ...
 import drago.study_slurm as study_slurm  # the SLURM backend of drago study
+import drago.agent.factory  # noqa: F401 - registers the built-in agent kinds
+from drago.agent.protocol import (AgentCapabilities, AgentKind, ContinualAgent, agent_kinds, get_agent_kind,
+                                  register_agent_kind)
+from drago.agent.protocol import plugin_problems as _agent_plugin_problems
 from drago.agent.speed import resolve_speed, speed_summary
 from drago.config import Config, ConfigError, MethodSetting, available_presets, describe_settings
 from drago.settings_docs import describe_all as describe_settings_fully
@@ -67,7 +71,8 @@ __all__ = [
     "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
     "reviewer_pay_of_run", "plugin_packages", "describe_settings_fully", "MethodSetting",
     "RecordError", "read_record", "record_run", "recorded_evaluation", "components_checkpoints",
-    "components_of_run", "costs_of_run", "evaluate_components",
+    "components_of_run", "costs_of_run", "evaluate_components", "AgentCapabilities", "AgentKind", "ContinualAgent",
+    "agent_kinds", "get_agent_kind", "register_agent_kind",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",
     "Record", "RegistryError", "ReportError", "Run", "RunDirError", "TaskState", "Trainer", "WorldModelPredictor",
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",
@@ -96,11 +101,12 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
 
 
 def plugin_problems() -> list[PluginProblem]:
-    """Every plug-in (method, domain or preset) that failed to load and was skipped; ``str(problem)`` is one
-    line."""
+    """Every plug-in (method, domain, agent kind or preset) that failed to load and was skipped; ``str(problem)``
+    is one line."""
     from drago.config import preset_plugin_problems
 
-    return [*_method_plugin_problems(), *_domain_plugin_problems(), *preset_plugin_problems()]
+    return [*_method_plugin_problems(), *_domain_plugin_problems(), *_agent_plugin_problems(),
+            *preset_plugin_problems()]
 
 
 def plugin_packages() -> dict[str, dict[str, str]]:

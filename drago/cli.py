@@ -158,7 +158,7 @@ def _cmd_resume(args: argparse.Namespace) -> int:
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
-    from drago.api import (available_domains, available_presets, describe_settings_fully,
+    from drago.api import (agent_kinds, available_domains, available_presets, describe_settings_fully,
                            get_domain, methods, plugin_packages, plugin_problems, task_descriptions)
 
     packages = plugin_packages()
@@ -168,6 +168,9 @@ def _cmd_list(args: argparse.Namespace) -> int:
     for name, cls in methods().items():
         origin = f" (package {packages['methods'][name]})" if name in packages["methods"] else ""
         print(f"  {name:<20} {cls.description}{origin}")
+    print("agents:")
+    for name, kind in agent_kinds().items():
+        print(f"  {name:<20} {kind.description} (agent.kind={name})")
     domains = {name: get_domain(name) for name in available_domains()}
     tasks = {name: task_descriptions(name) for name in domains}
     width = max(len(name) for rows in tasks.values() for name, _ in rows)

@@ -74,6 +74,9 @@ METHOD_SETTINGS: dict[str, dict[str, MethodSetting]] = {}
 #: Called before a method's own settings are looked up, so that plug-in methods have registered (the
 #: continual layer installs it: settings sit below the methods that read them).
 load_method_plugins: Callable[[], None] = lambda: None
+#: Called before ``agent.kind`` is checked, so that plug-in agent kinds have registered (the agent layer
+#: installs it, and registering a kind adds its name to ``CHOICES["agent.kind"]``).
+load_agent_plugins: Callable[[], None] = lambda: None
 
 
 @dataclass
@@ -682,6 +685,8 @@ def _check_ranges(cfg: Config) -> None:
         value = _get(cfg, key)
         if not 0.0 <= value <= 1.0:
             raise ConfigError(f"setting '{key}' must lie in [0, 1], got {value}")
+    if cfg.agent.kind not in CHOICES["agent.kind"]:
+        load_agent_plugins()
     for key, valid in CHOICES.items():
         if _get(cfg, key) not in valid:
             raise ConfigError(f"unknown {key} '{_get(cfg, key)}'; valid choices: {', '.join(valid)}")

@@ -225,7 +225,7 @@ def test_the_learner_learns_its_own_reward_and_keeps_a_uniform_priority():
     spec = env_spec("minigrid")
     world_model = build_world_model(cfg, spec)
     agent = build_agent(cfg, spec, world_model, build_world_optimizer(cfg, world_model), task="room1")
-    assert isinstance(agent, PetsAgent) and isinstance(agent.heads, RewardHead)
+    assert isinstance(agent, PetsAgent) and isinstance(agent.reward_head, RewardHead)
     rows = 6
     batch = SimpleNamespace(obs=torch.rand(rows, 3), next_obs=torch.rand(2, rows, 3), actions=torch.eye(3)[[0] * rows][None].repeat(2, 1, 1),
                             rewards=torch.ones(2, rows))
@@ -238,7 +238,7 @@ def test_the_learner_learns_its_own_reward_and_keeps_a_uniform_priority():
     other = build_agent(cfg, spec, world_model, None, task="room1")
     other.load_state_dict(state)
     probe = (torch.rand(4, 3), torch.eye(3)[[0, 1, 2, 0]], torch.rand(4, 3))
-    assert torch.equal(other.heads(*probe), agent.heads(*probe))
+    assert torch.equal(other.reward_head(*probe), agent.reward_head(*probe))
     # The known reward: the learner plans on the grid's own reward and learns none.
     known = build_agent(load_config("smoke", [*PETS, "agent.pets_reward=known"]), spec, world_model, None, task="room1")
     assert known.reward_head is None and set(known.update(batch, 0, train_world_model=False)) == {"priority"}
@@ -271,7 +271,7 @@ def test_a_continuous_plan_warm_starts_the_next_one(monkeypatch):
 # Settings: what PETS cannot do is said in one line, before anything runs
 # ---------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("method, extra, words", [
-    ("curiosity", [], ["method 'curiosity'", "value heads", "agent.kind=pets"]),
+    ("curiosity", [], ["method 'curiosity'", "needs a learned value", "agent.kind=pets"]),
     ("drago-single-agent", ["agent.pets_reward=known"], ["method 'drago-single-agent'", "agent.pets_reward=learned"]),
 ])
 def test_a_method_pets_cannot_serve_says_so_in_one_line(method, extra, words, tmp_path, capsys):

@@ -26,6 +26,7 @@ from drago.agent.planner import (
     plan_discrete,
     terminal_value,
 )
+from drago.agent.protocol import TDMPC_CAPABILITIES
 from drago.agent.speed import resolve_agent_speed
 from drago.config import AgentConfig
 
@@ -61,6 +62,8 @@ class Agent:
         discrete: one-hot actions (grid) or continuous actions in [-1, 1].
         reviewer: use the reviewer's PER priority (r + 2 + |TD errors|).
     """
+
+    capabilities = TDMPC_CAPABILITIES
 
     def __init__(self, world_model: WorldModel, world_optimizer: torch.optim.Optimizer, cfg: AgentConfig,
                  discrete: bool, reviewer: bool = False):
@@ -215,6 +218,21 @@ class Agent:
         }
 
     # ------------------------------------------------------------- persistence
+    def task_state(self) -> dict[str, Any]:
+        """The heads and the CEM std floor, planning as at the task's end (a task checkpoint's learner)."""
+        return {"learner": self.heads.state_dict(), "learner_std_floor": float(self.std_floor)}
+
+    def load_task_state(self, state: dict[str, Any]) -> None:
+        """:meth:`task_state` from a task checkpoint; one written before the floor was saved takes the floor's
+        schedule at the task's last step (``state["steps"]``), the same up to one iteration's updates."""
+        self.heads.load_state_dict(state["learner"])
+        c = self.cfg
+        self.std_floor = float(state.get("learner_std_floor", linear_schedule(
+            c.std_schedule_start, c.min_std, c.std_schedule_steps, int(state.get("steps", 0)))))
+
+    def trained_modules(self) -> dict[str, torch.nn.Module]:
+        return {"learner heads": self.heads}
+
     def state_dict(self) -> dict[str, Any]:
         return {"heads": self.heads.state_dict(), "model_optimizer": self.model_optimizer.state_dict(),
                 "policy_optimizer": self.policy_optimizer.state_dict(), "std_floor": self.std_floor}

@@ -35,6 +35,7 @@ from torch import nn
 
 from drago.agent.agent import random_action
 from drago.agent.losses import LOG_EPS
+from drago.agent.protocol import PETS_CAPABILITIES
 
 __all__ = [
     "PROPAGATION_MODES",
@@ -689,7 +690,7 @@ class PetsConfig:
 
 
 class PetsAgent:
-    """PETS behind the surface the trainer and the continual methods use on TD-MPC's ``Agent``.
+    """PETS as a :class:`~drago.agent.protocol.ContinualAgent`, the protocol TD-MPC's ``Agent`` implements too.
 
     Rewards, three ways:
 
@@ -728,6 +729,8 @@ class PetsAgent:
         reward_head: the agent's own learned reward (exclusive with ``known_reward``).
     """
 
+    capabilities = PETS_CAPABILITIES
+
     def __init__(self, world_model: ProbabilisticEnsemble | PetsWorldModel,
                  world_optimizer: torch.optim.Optimizer | None = None, cfg: PetsConfig | None = None,
                  discrete: bool = True, known_reward: RewardFn | None = None,
@@ -750,9 +753,6 @@ class PetsAgent:
         self._plan_reward: RewardFn | None = known_reward if reward_head is None else reward_head
         if self._plan_reward is None and not self.ensemble.predict_reward:
             raise ValueError("an ensemble without a reward output needs known_reward or a reward_head")
-        # What the trainer saves as the task's learner beside the world model (TD-MPC: its heads).
-        self.heads: nn.Module = reward_head if reward_head is not None else nn.Module()
-        self.std_floor = float(self.cfg.plan.min_std)
 
     def autocast(self):
         """PETS runs in float32: nothing to enter (the TD-MPC agent's reduced-precision context)."""
@@ -789,9 +789,6 @@ class PetsAgent:
         return (states.reshape(-1, obs_dim), batch.actions.reshape(-1, act_dim),
                 batch.next_obs.reshape(-1, obs_dim), batch.rewards.reshape(-1))
 
-    def rollout(self, obs: torch.Tensor, actions: torch.Tensor) -> None:
-        """Nothing: TD-MPC shares one latent rollout between DRAGO's two updates; PETS has no latents."""
-
     @torch.no_grad()
     def prediction_score(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         """Mean over rows of -log(mean_dims (mean prediction - s')^2): the one-step form of TD-MPC's prediction
@@ -800,12 +797,11 @@ class PetsAgent:
         return -torch.log((predicted - next_obs).pow(2).mean(-1) + LOG_EPS).mean()
 
     def update(self, batch: Any, step: int = 0, train_world_model: bool = True,
-               world_model_loss: Callable[[], torch.Tensor] | None = None, policy_rows: int | None = None,
-               **unused: Any) -> dict[str, torch.Tensor]:
+               world_model_loss: Callable[[], torch.Tensor] | None = None,
+               policy_rows: int | None = None) -> dict[str, torch.Tensor]:
         """One bootstrapped gradient step of the ensemble (when ``train_world_model``) and one of the reward
         head on a replay ``Batch``; metrics as tensors (no host sync), with a uniform ``priority`` for the
-        first ``policy_rows`` sequences (all without it). Options of TD-MPC's ``update`` that concern its
-        policy and value heads (``curiosity_coef``, ``latents``) are accepted and ignored."""
+        first ``policy_rows`` sequences (all without it)."""
         rows = batch.obs.shape[0] if policy_rows is None else policy_rows
         priority = batch.obs.new_ones(rows)
         metrics: dict[str, torch.Tensor] = {}
@@ -824,6 +820,17 @@ class PetsAgent:
         return metrics
 
     # ------------------------------------------------------------- persistence
+    def task_state(self) -> dict[str, Any]:
+        """The learned reward head (nothing when the learner is told the reward): a task checkpoint's learner."""
+        return {"learner": {} if self.reward_head is None else self.reward_head.state_dict()}
+
+    def load_task_state(self, state: dict[str, Any]) -> None:
+        if self.reward_head is not None:
+            self.reward_head.load_state_dict(state["learner"])
+
+    def trained_modules(self) -> dict[str, nn.Module]:
+        return {} if self.reward_head is None else {"learner reward head": self.reward_head}
+
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {"warm_mean": None if self._warm_mean is None else self._warm_mean.clone()}
         if self.reward_head is not None:

@@ -25,6 +25,7 @@ from shutil import which
 
 import torch
 
+from drago.agent.protocol import capabilities_of
 from drago.config import AgentConfig, Config, ConfigError
 
 __all__ = ["BFLOAT16_MIN_WIDTH", "compile_cache_dir", "compile_problem", "fast_bfloat16", "resolve_agent_speed",
@@ -83,7 +84,7 @@ def resolve_agent_speed(agent: AgentConfig, device: torch.device) -> tuple[Agent
     :class:`~drago.config.ConfigError`."""
     notes: list[str] = []
     precision, compile_ = agent.precision, agent.compile
-    if agent.kind == "pets":
+    if not capabilities_of(agent.kind).reduced_precision:
         return dataclasses.replace(agent, precision="float32" if precision == "auto" else precision,
                                    compile="false" if compile_ == "auto" else compile_), notes
     if precision == "auto":
@@ -111,7 +112,7 @@ def resolve_speed(cfg: Config, device: torch.device) -> tuple[Config, list[str]]
 
 def speed_summary(agent: AgentConfig) -> str:
     """The resolved speed settings in the words a run's first line uses, e.g. ``float32, compiled, fast tanh``."""
-    if agent.kind == "pets":
+    if not capabilities_of(agent.kind).reduced_precision:
         return "float32, eager"
     parts = [agent.precision, "compiled" if agent.compile == "true" else "eager"]
     if agent.fast_tanh:

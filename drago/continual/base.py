@@ -14,9 +14,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from drago.agent.agent import Agent
+from drago.agent.protocol import ContinualAgent
 from drago.agent.buffer import EpisodeReplay
-from drago.agent.networks import WorldModel
 from drago.config import Config, MethodSetting
 from drago.envs import EnvSpec
 
@@ -94,9 +93,9 @@ class TaskState:
 
     index: int
     name: str
-    world_model: WorldModel
+    world_model: torch.nn.Module
     world_optimizer: torch.optim.Optimizer
-    learner: Agent
+    learner: ContinualAgent
     buffer: EpisodeReplay
     rng: np.random.Generator
     env: Any  # the task's env, shared by every episode of the task (as in the official code)
@@ -160,13 +159,14 @@ class ContinualMethod:
     def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
         """One gradient iteration u: by default a learner update that also trains the world model."""
         batch = task.buffer.sample(self.cfg.agent.batch_size, task.rng)
-        metrics = task.learner.update(batch, u, train_world_model=True, curiosity_coef=self.curiosity_coef,
-                                      world_model_loss=self.world_model_loss(task))
+        metrics = task.learner.update(batch, u, train_world_model=True, world_model_loss=self.world_model_loss(task),
+                                      **self.update_options(task))
         task.buffer.update_priorities(batch.indices, metrics.pop("priority"))
         return {f"learner_{k}": v for k, v in metrics.items()}
 
-    #: prediction-error bonus in the learner's TD target (the curiosity baseline)
-    curiosity_coef = 0.0
+    def update_options(self, task: TaskState) -> dict[str, Any]:
+        """Options of the learner's update that a capability of its agent adds (the curiosity baseline's bonus)."""
+        return {}
 
     def world_model_loss(self, task: TaskState) -> Callable[[], torch.Tensor] | None:
         """An extra loss on the world model for this gradient step (EWC penalty, replayed old rows)."""

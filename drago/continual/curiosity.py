@@ -8,6 +8,7 @@ still fits the environment reward, which is what the planner's reward prediction
 
 from __future__ import annotations
 
+from drago.agent.protocol import capabilities_of
 from drago.continual.base import ContinualMethod
 
 
@@ -21,9 +22,12 @@ class Curiosity(ContinualMethod):
         super().__init__(cfg, spec, device)
         self.curiosity_coef = cfg.method.curiosity_coef
 
+    def update_options(self, task):
+        return {"curiosity_coef": self.curiosity_coef}
+
     @classmethod
     def config_problem(cls, cfg):
-        if cfg.agent.kind != "tdmpc":
-            return (f"needs TD-MPC's value heads (its bonus enters the learner's TD target), which "
+        if not capabilities_of(cfg.agent.kind).value_function:
+            return (f"needs a learned value (its bonus enters the learner's TD target), which "
                     f"agent.kind={cfg.agent.kind} lacks; use agent.kind=tdmpc or another method")
         return None

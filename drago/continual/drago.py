@@ -24,6 +24,7 @@ import torch
 
 from drago.agent.buffer import Batch, EpisodeReplay
 from drago.agent.factory import build_agent, replay_horizon
+from drago.agent.protocol import get_agent_kind
 from drago.continual.base import ContinualMethod, TaskState, buffer_capacity
 from drago.continual.generative import (
     VAE,
@@ -159,14 +160,14 @@ class Drago(ContinualMethod):
             # One world-model rollout, with its graph, over all 2B rows feeds both updates: the learner's
             # update (first, as in the official order) does not change the world model, so its rows' latents
             # are exactly those its own no-grad rollout would give. The reviewer's backward then trains it.
-            # A PETS agent has no latents to share (None).
-            latents = self.reviewer.rollout(combined.obs, combined.actions)
+            shared = self.reviewer.capabilities.shared_rollout  # an agent without latents has none to share
+            latents = self.reviewer.rollout(combined.obs, combined.actions) if shared else None
             out = task.learner.update(learner_batch, u, train_world_model=False,
-                                      latents=None if latents is None else latents[:, B:].detach())
+                                      **({"latents": latents[:, B:].detach()} if shared else {}))
             task.buffer.update_priorities(learner_batch.indices, out.pop("priority"))
             metrics.update({f"learner_{k}": v for k, v in out.items()})
             out = self.reviewer.update(combined, u, train_world_model=True, policy_rows=B, world_model_loss=joint,
-                                       latents=latents)
+                                       **({"latents": latents} if shared else {}))
             self.reviewer_buffer.update_priorities(reviewer_batch.indices, out.pop("priority"))
             self._track_threshold(out["mean_prediction_score"])
             metrics.update({f"reviewer_{k}": v for k, v in out.items()})
@@ -258,9 +259,9 @@ class DragoSingleAgent(Drago):
 
     @classmethod
     def config_problem(cls, cfg):
-        if cfg.agent.kind == "pets" and cfg.agent.pets_reward == "known":
-            return ("adds the intrinsic reward to the rewards the learner learns from, and with "
-                    "agent.pets_reward=known the learner learns none; use agent.pets_reward=learned")
+        if get_agent_kind(cfg.agent.kind).told_reward(cfg):
+            return ("adds the intrinsic reward to the rewards the learner learns from, and a learner told the "
+                    "task's reward (agent.pets_reward=known) learns none; use agent.pets_reward=learned")
         return None
 
 

@@ -18,6 +18,7 @@ from torch import nn
 
 from drago.agent.buffer import EpisodeReplay
 from drago.agent.losses import prediction_error
+from drago.agent.protocol import capabilities_of
 from drago.config import Config
 from drago.continual.base import ContinualMethod, TaskState
 from drago.envs import EnvSpec
@@ -202,7 +203,8 @@ class Replay(ContinualMethod):
         super().__init__(cfg, spec, device)
         # A PETS ensemble's objective is its NLL averaged over single transitions with coefficient 1 (docs:
         # Methods, PETS): there an old transition weighs as a one-step sequence of coefficient 1.
-        coef, steps = (cfg.agent.consistency_coef, cfg.agent.horizon) if cfg.agent.kind == "tdmpc" else (1.0, 1)
+        sequences = capabilities_of(cfg.agent.kind).sequence_loss
+        coef, steps = (cfg.agent.consistency_coef, cfg.agent.horizon) if sequences else (1.0, 1)
         self.weight = replay_weight(coef, steps, cfg.method.replay_fraction)
         # Own generator: the reservoir's draws never disturb the task's sampling stream.
         rng = np.random.default_rng(np.random.SeedSequence([cfg.train.seed, 0x5E5E7]))

@@ -63,6 +63,7 @@ import torch
 from drago.agent.agent import Agent
 from drago.agent.buffer import Batch
 from drago.agent.networks import TaskHeads
+from drago.agent.protocol import capabilities_of
 from drago.config import AgentConfig
 from drago.envs.tasks import GridTask, get_grid_task
 from drago.envs import GRID_DOMAIN, exact_world
@@ -328,7 +329,9 @@ def refit_heads(model: torch.nn.Module, heads: TaskHeads, probe: GridProbe, cfg:
 
 # ---- a run ---------------------------------------------------------------------------------------------
 def _rows_note(kind: str) -> str:
-    return {"pets": "PETS has no TD-MPC heads: only the dynamics are measured"}.get(kind, "")
+    if capabilities_of(kind).task_heads:
+        return ""
+    return f"agent.kind={kind} has no task heads apart from its world model: only the dynamics are measured"
 
 
 def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, Any]] = (),
@@ -353,7 +356,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
     models = [c.world_model.eval() for c in loaded]
     heads: list[TaskHeads | None] = []
     for c in loaded:
-        if kind == "pets" or "learner" not in c.data:
+        if not capabilities_of(kind).task_heads or "learner" not in c.data:
             heads.append(None)
             continue
         h = TaskHeads(c.spec.obs_dim, c.spec.action_dim, c.config.agent.mlp_dim, True,

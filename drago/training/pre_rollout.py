@@ -10,10 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drago.agent.agent import Agent
 from drago.agent.factory import build_agent
-from drago.agent.pets import PetsAgent
-from drago.agent.networks import linear_schedule
+from drago.agent.protocol import ContinualAgent
 from drago.config import Config
 from drago.training.checkpoint import CheckpointError, load_task_checkpoint
 from drago.seeding import seeded_torch_rng
@@ -30,7 +28,7 @@ class SavedLearner:
         steps: the task's step counter at its end, where the learner's horizon schedule stood.
     """
 
-    agent: Agent | PetsAgent
+    agent: ContinualAgent
     config: Config
     task: str
     task_index: int
@@ -52,11 +50,8 @@ def load_learner(path: str | Path, device: torch.device | str = "cpu") -> SavedL
         raise CheckpointError(f"{path} holds no learner heads; it cannot drive a pre-rollout or record held-out data")
     with seeded_torch_rng(0, device):  # the heads' initial weights, overwritten below
         agent = build_agent(cfg, loaded.spec, loaded.world_model, None, task=str(data["task"]))
-    agent.heads.load_state_dict(data["learner"])
+    agent.load_task_state(data)
     steps = int(data["steps"])
-    a = cfg.agent
-    agent.std_floor = float(data.get("learner_std_floor",
-                                     linear_schedule(a.std_schedule_start, a.min_std, a.std_schedule_steps, steps)))
     return SavedLearner(agent=agent, config=cfg, task=str(data["task"]), task_index=int(data["task_index"]),
                         steps=steps)
 
@@ -84,7 +79,7 @@ class PreRollout:
         self.steps = int(steps)
         self.planning = planning
         self.device = torch.device(device)
-        if planning == "code":
+        if planning == "code" and learner.agent.capabilities.plan_schedules:
             learner.agent.std_floor = learner.config.agent.std_schedule_start
 
     @classmethod

@@ -249,8 +249,8 @@ class Trainer:
             "task_index": index, "task": name, "config": cfg.to_dict(),
             "world_model": task.world_model.state_dict(),
             "method": self.method.carry_state(),
-            # The learner's heads are kept for pre-rollouts and inspection; chaining never reads them.
-            "learner": learner.heads.state_dict(), "learner_std_floor": float(learner.std_floor),
+            # The learner is kept for pre-rollouts, held-out sets and the probes; chaining never reads it.
+            **learner.task_state(),
             "final_eval": last_eval, "wall_time_s": wall, **cost, "steps": task.step, "learner_steps": task.learner_steps,
             "episodes": task.episodes, "log_positions": self.logger.positions(),
         }, kind="task", domain=cfg.env.domain)
@@ -333,7 +333,7 @@ class Trainer:
         task, the step, the quantity and the last good checkpoint); checkpoints are checked on save too."""
         bad = next((k for k in metrics if not math.isfinite(row[k])), None)
         if bad is None:
-            named = [("world model", task.world_model), ("learner heads", task.learner.heads)]
+            named = [("world model", task.world_model), *task.learner.trained_modules().items()]
             finite = torch.stack([torch.isfinite(p).all() for _, module in named for p in module.parameters()])
             if not bool(finite.all()):
                 bad = next(name for name, module in named

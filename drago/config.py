@@ -135,6 +135,9 @@ class AgentConfig(_Section):
     std_schedule_start: float = 0.5  # CEM std floor, linear start -> min_std over std_schedule_steps
     std_schedule_steps: int = 50_000  # task steps over which the CEM std floor falls to min_std
     seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
+    # What the horizon, std-floor, lr and target-EMA schedules count: "task", a task's agent steps with DRAGO's
+    # reviewer's (the official code's clock), or "learner", the learner's alone; the same for reviewer-less methods.
+    schedule_clock: str = "task"
     # Seed-phase probabilities of a discrete domain's actions, used when there is one per action (the grid's
     # left, right, forward); other discrete domains, or an empty list, draw uniformly.
     random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)
@@ -651,6 +654,7 @@ UNIT_INTERVAL = ("agent.discount", "agent.rho", "agent.tau", "agent.momentum", "
 CHOICES: dict[str, tuple[str, ...]] = {
     "agent.kind": AGENT_KINDS,
     "agent.elite_selection": ELITE_SELECTIONS,
+    "agent.schedule_clock": ("task", "learner"),
     "agent.pets_propagation": ("tsinf", "ts1"),
     "agent.pets_reward": ("learned", "known"),
     "agent.precision": PRECISIONS,

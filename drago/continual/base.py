@@ -104,6 +104,12 @@ class TaskState:
     learner_steps: int = 0
     episodes: int = 0
     extras: dict[str, Any] = field(default_factory=dict)  # a method's per-task objects
+    schedule_clock: str = "task"  # agent.schedule_clock
+
+    @property
+    def schedule_step(self) -> int:
+        """Where the agents' schedules stand (``agent.schedule_clock``): the task's agent steps, or the learner's."""
+        return self.learner_steps if self.schedule_clock == "learner" else self.step
 
 
 class ContinualMethod:

@@ -102,6 +102,7 @@ class Drago(ContinualMethod):
         cfg, reviewer, L = self.cfg, self.reviewer, self.cfg.env.episode_length
         step = task.step
         explore_randomly = step < cfg.agent.seed_steps or len(self.reviewer_buffer) < cfg.agent.batch_size
+        schedule = task.schedule_step
         bonus = self.counts.bonus if self.counts is not None else None
         obs, _ = task.env.reset()
         observations, actions = [obs], []
@@ -111,7 +112,7 @@ class Drago(ContinualMethod):
             if explore_randomly:
                 action = reviewer.random_action(task.rng)
             else:
-                action = reviewer.act(obs, step, eval_mode=False, first_step=t == 0, bonus=bonus)
+                action = reviewer.act(obs, schedule, eval_mode=False, first_step=t == 0, bonus=bonus)
             obs, _, _, _, _ = task.env.step(action)
             observations.append(obs)
             actions.append(action)

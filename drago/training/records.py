@@ -66,8 +66,8 @@ PATH_SETTINGS = ("transfer.checkpoint", "transfer.pre_rollout_checkpoint")
 #: and compilation, which the record's provenance keeps), so that a study continues on another machine.
 NOT_PROTOCOL = (*SETTINGS_THAT_MAY_DIFFER, *PATH_SETTINGS, *RESOLVED_AT_START, "train.tensorboard")
 #: Settings left out of a protocol while they hold this value: a plug-in method's own settings (none for the
-#: built-in methods).
-NEUTRAL: dict[str, Any] = {"method.options": {}}
+#: built-in methods), and settings added after records existed whose default reproduces those records.
+NEUTRAL: dict[str, Any] = {"method.options": {}, "agent.schedule_clock": "task"}
 
 
 class RecordError(RunDirError):

@@ -155,7 +155,8 @@ class Trainer:
         buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, replay_horizon(cfg), cfg.env.episode_length,
                                cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
         task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,
-                         learner=learner, buffer=buffer, rng=rng, env=env, budget=budget)
+                         learner=learner, buffer=buffer, rng=rng, env=env, budget=budget,
+                         schedule_clock=cfg.agent.schedule_clock)
         self.method.begin_task(task)
         return task, previous
 
@@ -184,13 +185,13 @@ class Trainer:
         L = cfg.env.episode_length
         while not budget.finished(task):
             t0, cpu0 = time.perf_counter(), time.process_time()
-            step = task.step
+            step, schedule = task.step, task.schedule_step
             explore_randomly = step < seed_steps or len(buffer) < cfg.agent.batch_size
 
-            def choose(obs, t, step=step, explore_randomly=explore_randomly):
+            def choose(obs, t, schedule=schedule, explore_randomly=explore_randomly):
                 if explore_randomly:
                     return learner.random_action(rng)
-                return learner.act(obs, step, eval_mode=False, first_step=t == 0)
+                return learner.act(obs, schedule, eval_mode=False, first_step=t == 0)
 
             episode = run_episode(env, L, choose, self.episode_start(step))
             buffer.add_episode(episode.obs, episode.actions, episode.rewards)
@@ -207,7 +208,7 @@ class Trainer:
             if step >= seed_steps:
                 try:
                     for i in range(cfg.updates_per_episode):
-                        metrics = self.method.gradient_step(task, step + i)
+                        metrics = self.method.gradient_step(task, schedule + i)
                 except NonFinitePriority:
                     raise TrainingDiverged(self._divergence(task, "the replay priorities (TD errors) are not "
                                                                    "finite")) from None
@@ -294,7 +295,7 @@ class Trainer:
         with seeded_torch_rng(task_seed(cfg.train.seed, task.index, 6, env_step), self.device):
             episodes = run_episodes(
                 envs, cfg.env.episode_length,
-                lambda obs, t: task.learner.act(obs, task.step, eval_mode=True, first_step=t == 0),
+                lambda obs, t: task.learner.act(obs, task.schedule_step, eval_mode=True, first_step=t == 0),
                 self.episode_start(task.step))
         returns = [episode.ret for episode in episodes]
         result = {"episode_reward": float(np.mean(returns)), "episode_reward_std": float(np.std(returns))}

@@ -17,15 +17,20 @@ from helpers import QUIET
 # The files that take longest, longest first. Under pytest-xdist (``--dist loadfile``) each file goes whole to
 # one worker, in collection order: starting the long ones first lets the short ones fill in at the end,
 # instead of one worker finishing a long file alone while the other waits.
-LONG_FILES = ("test_study_slurm.py", "test_study.py", "test_trainer.py", "test_transfer.py", "test_drago.py",
-              "test_report.py", "test_agent.py")
+LONG_FILES = ("test_records.py", "test_study_slurm.py", "test_study.py", "test_trainer.py", "test_transfer.py",
+              "test_drago.py", "test_report.py", "test_agent.py")
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest deselects by marker, so that the marker added here counts
 def pytest_collection_modifyitems(config, items):
-    """Long files first (see :data:`LONG_FILES`); tests marked ``cuda`` run where torch sees a CUDA GPU and are
-    skipped, with the reason, elsewhere."""
+    """Long files first (see :data:`LONG_FILES`); every ``experiment`` test is also ``slow``; tests marked
+    ``cuda`` run where torch sees a CUDA GPU and are skipped, with the reason, elsewhere."""
     rank = {name: i for i, name in enumerate(LONG_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))  # stable: the rest keep their order
+    # A command line's -m replaces the one in addopts: without this, `-m "not slow"` would run the experiments.
+    for item in items:
+        if item.get_closest_marker("experiment"):
+            item.add_marker(pytest.mark.slow)
     if torch.cuda.is_available():
         return
     skip = pytest.mark.skip(reason="needs a CUDA GPU (torch.cuda.is_available() is False); "
@@ -33,6 +38,13 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "cuda" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_torch_thread_for_fixtures():
+    """Module and session fixtures are set up before any function fixture, and some of them train: with every
+    core's thread on a machine already busy, one of them took ten times as long."""
+    torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)

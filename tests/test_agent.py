@@ -660,6 +660,7 @@ def _fit(precision: str, steps: int = 250, fast_tanh: bool = False) -> dict[str,
     return {k: float(out[k]) for k in ("reward_loss", "value_loss", "consistency_loss", "pi_loss")}
 
 
+@pytest.mark.slow
 def test_bfloat16_learns_like_float32(monkeypatch):
     from drago.agent import networks
 
@@ -690,6 +691,7 @@ def test_fast_tanh_matches_tanh_and_its_gradient():
     assert torch.equal(tanh(x, fast=False), exact)
 
 
+@pytest.mark.slow
 def test_fast_tanh_reaches_the_heads_and_learns_like_tanh():
     from drago.config import load_config
 
@@ -748,7 +750,7 @@ def test_hot_path_never_reads_tensors_on_the_host(no_host_reads):
         torch.ones(1).item()  # the guard is armed
 
 
-@pytest.mark.slow
+@pytest.mark.experiment
 def test_compiled_agent_trains_on_the_smoke_preset(tmp_path):
     """agent.compile=true: torch.compile of the losses and the planner step (over a minute on a CPU)."""
     import csv

@@ -164,6 +164,7 @@ def test_the_fake_distribution_is_what_entry_points_see(tmp_path, monkeypatch):
 # ---------------------------------------------------------------------------------------------------
 # Reading a run
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_run_reads_config_results_logs_and_world_models(smoke_runs):
     run = api.Run(smoke_runs("continual"))
     assert run.complete and [t["name"] for t in run.tasks] == ["room1", "room2", "room3", "room4"]

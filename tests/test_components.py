@@ -76,12 +76,14 @@ def test_a_perfect_model_scores_no_dynamics_error():
     assert broken["dynamics_1step"] < 0.1 and broken["dynamics_hstep"] == 0.0
 
 
+@pytest.mark.slow
 def test_heads_that_fit_the_task_plan_well_over_a_perfect_model(learned_heads):
     measures = component_errors(TrueModel(), learned_heads, grid_probe("room1", CFG.discount), CFG.horizon)
     assert measures["reward_error"] < 0.15 and measures["policy_agreement"] > 0.4
     assert fraction(TrueModel(), learned_heads) > 0.6
 
 
+@pytest.mark.slow
 def test_corrupted_heads_are_recovered_by_the_refit_so_the_loss_is_the_heads(learned_heads):
     torch.manual_seed(1)
     corrupted = TaskHeads(3, 3, CFG.mlp_dim, True)  # the model is perfect, the heads know nothing
@@ -92,6 +94,7 @@ def test_corrupted_heads_are_recovered_by_the_refit_so_the_loss_is_the_heads(lea
     assert recovered > 0.6, "a perfect model must support the task once the heads are refit"
 
 
+@pytest.mark.slow
 def test_corrupted_dynamics_are_not_recovered_by_the_refit_so_the_loss_is_the_model(learned_heads):
     model = FrozenInPlace()
     before = {k: v.clone() for k, v in model.state_dict().items()}
@@ -117,6 +120,7 @@ def test_byte_accounting_matches_the_state_dicts_each_method_keeps():
     assert carried_bytes(world.state_dict(), {}) == {**dict.fromkeys(drago, 0), "world_model": world_bytes}
 
 
+@pytest.mark.slow
 def test_eval_components_writes_its_files_and_the_report_shows_them(tmp_path, capsys):
     from drago import cli
 

@@ -365,6 +365,7 @@ SMOKE_CHEETAH = ["env.domain=cheetah", "env.tasks=[cheetah-run,cheetah-jump]", "
                  "train.eval_freq=160", "train.checkpoint_freq=80", "train.updates_per_episode=5"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["continual", "drago"])
 def test_smoke_training_run_on_cheetah(tmp_path, method):
     """Two tasks of four 20-step episodes; DRAGO's reviewer plans and updates in task 2."""

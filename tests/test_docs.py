@@ -42,12 +42,14 @@ def _cells(page: Path) -> set[str]:
     return {html.unescape(code) for code in re.findall(r"<td><code>(.*?)</code>", text)}
 
 
+@pytest.mark.slow
 def test_site_builds_strictly(site):
     for page in ("index.html", "getting-started.html", "results.html", "benchmarks.html",
                  "reference/settings.html", "reference/api.html"):
         assert (site / page).is_file(), page
 
 
+@pytest.mark.slow
 def test_settings_reference_lists_every_setting(site):
     cells = _cells(site / "reference" / "settings.html")
     missing = [key for key, _, _ in describe_settings() if key not in cells]
@@ -55,6 +57,7 @@ def test_settings_reference_lists_every_setting(site):
     assert "spec §" not in (site / "reference" / "settings.html").read_text(encoding="utf-8")
 
 
+@pytest.mark.slow
 def test_settings_reference_shows_each_default(site):
     text = (site / "reference" / "settings.html").read_text(encoding="utf-8")
     rows = {html.unescape(m.group(1)): html.unescape(m.group(2))
@@ -66,6 +69,7 @@ def test_settings_reference_shows_each_default(site):
     assert rows["agent.use_crelu"] == "true"
 
 
+@pytest.mark.slow
 def test_api_reference_renders_every_listed_module(site):
     text = (site / "reference" / "api.html").read_text(encoding="utf-8")
     listed = re.findall(r"^::: ([\w.]+)", (ROOT / "docs" / "reference" / "api.md").read_text(), re.M)
@@ -80,6 +84,7 @@ def test_pages_cite_the_paper_not_an_internal_spec():
     assert not offenders, offenders
 
 
+@pytest.mark.slow
 def test_the_api_page_documents_each_name_once_per_object(site):
     """A name drago.api re-exports is documented under its own module only (Domain appeared twice)."""
     page = (site / "reference" / "api.html").read_text(encoding="utf-8")

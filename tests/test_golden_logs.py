@@ -14,6 +14,7 @@ def recorded() -> dict:
     return json.loads(GOLDEN.read_text()).get(machine_key(), {}) if GOLDEN.is_file() else {}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, method", cases())
 def test_logs_are_byte_identical_to_the_recorded_ones(kind, method, tmp_path):
     golden = recorded()

@@ -74,6 +74,7 @@ def pets_runs(tmp_path_factory):
 # ---------------------------------------------------------------------------------------------------
 # Every method through the same interface
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("method", METHODS)
 def test_each_method_trains_a_pets_grid_run(pets_runs, method):
     run = pets_runs(method)
@@ -100,6 +101,7 @@ def test_each_method_trains_a_pets_grid_run(pets_runs, method):
     assert "net.0.weight" in first["learner"]
 
 
+@pytest.mark.slow
 def test_scratch_starts_each_task_afresh_and_continual_carries_the_ensemble(pets_runs):
     for method, carried in (("continual", True), ("scratch", False)):
         run = pets_runs(method)
@@ -112,6 +114,7 @@ def test_scratch_starts_each_task_afresh_and_continual_carries_the_ensemble(pets
 # ---------------------------------------------------------------------------------------------------
 # What a PETS run's evaluations read: the ensemble's mean prediction
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_coverage_zero_shot_and_the_predictor_read_the_ensemble_mean(pets_runs):
     from drago.eval.coverage import coverage_of_run
     from drago.eval.predictor import load_world_model
@@ -135,6 +138,7 @@ def test_coverage_zero_shot_and_the_predictor_read_the_ensemble_mean(pets_runs):
     assert [r["stage"] for r in zero] == [1, 2] and all(np.isfinite(r["return"]) for r in zero)
 
 
+@pytest.mark.slow
 def test_the_four_grid_transfer_cases_run_from_a_pets_run_with_dense_reward(pets_runs, tmp_path, capsys):
     from drago.study import plan_study
     from drago.envs import get_domain
@@ -313,6 +317,7 @@ def test_the_pets_presets():
 # ---------------------------------------------------------------------------------------------------
 # Crash and resume
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_sigkill_then_resume_gives_the_uninterrupted_logs(tmp_path):
     """SIGKILL of a DRAGO-PETS run inside task 2 after a periodic checkpoint; `drago resume` then writes the
     logs of an uninterrupted run: the reviewer's reward head, its buffer and the ensemble all come back."""
@@ -337,6 +342,7 @@ def test_sigkill_then_resume_gives_the_uninterrupted_logs(tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # Continuous actions
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @needs_dmc
 def test_a_cheetah_pets_smoke_run(tmp_path):
     from drago.eval.heldout import retention_matrix

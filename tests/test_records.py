@@ -47,6 +47,7 @@ def recorded(tmp_path_factory) -> tuple[Path, Path]:
     return root / "study", root / "records"
 
 
+@pytest.mark.slow
 def test_each_finished_unit_is_one_small_record_without_binary_state(recorded):
     out, records = recorded
     paths = sorted(records.rglob("*.json.gz"))
@@ -65,6 +66,7 @@ def test_each_finished_unit_is_one_small_record_without_binary_state(recorded):
         assert path.stat().st_size < 200_000
 
 
+@pytest.mark.slow
 def test_a_fresh_machine_with_only_the_records_skips_every_unit_and_writes_the_same_report(recorded, tmp_path,
                                                                                            monkeypatch):
     out, records = recorded
@@ -80,6 +82,7 @@ def test_a_fresh_machine_with_only_the_records_skips_every_unit_and_writes_the_s
     assert report_bytes(tmp_path / "clone" / "study") == report_bytes(out)
 
 
+@pytest.mark.slow
 def test_a_changed_setting_reruns_exactly_the_units_it_changed(recorded, tmp_path):
     out, records = recorded
     mine = tmp_path / "records"
@@ -98,6 +101,7 @@ def test_a_changed_setting_reruns_exactly_the_units_it_changed(recorded, tmp_pat
     assert any("agent.horizon: 2 recorded, 3 now" in note for note in again.notes), again.notes
 
 
+@pytest.mark.slow
 def test_a_corrupt_or_foreign_record_is_one_line_and_not_used(recorded, tmp_path, capsys):
     _, records = recorded
     mine = tmp_path / "records"
@@ -124,6 +128,7 @@ def test_a_corrupt_or_foreign_record_is_one_line_and_not_used(recorded, tmp_path
         read_record(not_json)
 
 
+@pytest.mark.slow
 def test_a_record_cannot_write_outside_its_view(recorded, tmp_path):
     _, records = recorded
     record = read_record(records / "continual" / "seed1.json.gz")
@@ -134,6 +139,7 @@ def test_a_record_cannot_write_outside_its_view(recorded, tmp_path):
     assert not (tmp_path / "escaped.txt").exists()
 
 
+@pytest.mark.slow
 def test_records_and_run_directories_give_the_same_report_tables(recorded, tmp_path):
     out, records = recorded
     assert cli.main(["report", str(out / "continual" / "seed1"), str(out / "scratch" / "seed1"),
@@ -148,6 +154,7 @@ def test_records_and_run_directories_give_the_same_report_tables(recorded, tmp_p
     assert all(str(out) in a and str(records) in b for a, b in differ[1:]) and len(differ) == 3
 
 
+@pytest.mark.slow
 def test_status_counts_units_and_the_cpu_hours_left(recorded, tmp_path, capsys):
     out, records = recorded
     argv = ["study", "smoke", "--methods", *METHODS, "ewc", "--seeds", "1", "--out", str(tmp_path / "s"),
@@ -171,6 +178,7 @@ def test_record_command_refuses_an_unfinished_run(tmp_path, capsys):
             pass
 
 
+@pytest.mark.slow
 def test_with_records_a_finished_runs_transfers_and_record_come_before_new_runs(tmp_path, monkeypatch):
     started: list[str] = []
 
@@ -184,6 +192,7 @@ def test_with_records_a_finished_runs_transfers_and_record_come_before_new_runs(
     assert started == ["train", *["transfer"] * 4, "record", "train", *["transfer"] * 4, "record"]
 
 
+@pytest.mark.slow
 def test_a_record_reads_like_its_run_directory_from_python(recorded):
     import drago
 
@@ -204,6 +213,7 @@ def test_a_record_reads_like_its_run_directory_from_python(recorded):
     assert not folder.exists()
 
 
+@pytest.mark.slow
 def test_the_same_command_in_a_fresh_git_clone_skips_every_unit(recorded, tmp_path):
     """Done literally: a clone of this repository, the records folder copied into it, the study command run
     there by the clone's own code in a child process."""
@@ -237,6 +247,7 @@ def test_a_slurm_studys_report_job_records_the_units_before_its_report(tmp_path)
     assert argv[argv.index("--records") + 1] == str(tmp_path / "r") and "--report-only" in argv
 
 
+@pytest.mark.slow
 def test_the_results_page_section_is_regenerated_from_the_records(recorded, tmp_path):
     """docs/make_grid_results.py: the data files, the records' report and the page's section, from records only."""
     import subprocess
@@ -263,6 +274,7 @@ def test_the_results_page_section_is_regenerated_from_the_records(recorded, tmp_
     assert sources["grid_records_final.csv"]["units"] == 2 and sources["grid_records_final.csv"]["commit"]
 
 
+@pytest.mark.slow
 def test_eval_tables_read_a_records_recorded_evaluation(recorded, capsys):
     out, records = recorded
     record = records / "continual" / "seed1.json.gz"

@@ -209,6 +209,7 @@ def test_cell_scores_average_each_cells_twelve_transitions():
         cell_scores(score[:-1])
 
 
+@pytest.mark.slow
 def test_heatmap_png_draws_methods_by_stages(runs):
     maps = run_cell_scores(runs["c1"])
     assert [(c.stage, c.task) for c, _ in maps] == [(1, "room1"), (2, "room2")]
@@ -225,6 +226,7 @@ def test_heatmap_png_draws_methods_by_stages(runs):
 # ---------------------------------------------------------------------------------------------------
 # the report
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_report_on_partial_results(runs, report):
     html_path, md_path = report
     page = parse(html_path.read_text())
@@ -277,6 +279,7 @@ def test_report_on_partial_results(runs, report):
     assert len(page.images) == 2 and all(src.startswith("data:image/png;base64,") for src in page.images)
 
 
+@pytest.mark.slow
 def test_markdown_has_the_same_tables_and_figures(report):
     html_path, md_path = report
     page = parse(html_path.read_text())
@@ -290,6 +293,7 @@ def test_markdown_has_the_same_tables_and_figures(report):
     assert embedded == sorted((md_path.parent / name).read_bytes() for name in figures)
 
 
+@pytest.mark.slow
 def test_report_writes_nothing_into_runs_and_reuses_fresh_coverage(runs, tmp_path):
     before = {name: files_in(path) for name, path in runs.items()}
     build_report(list(runs.values()), tmp_path / "a")
@@ -313,6 +317,7 @@ def test_report_writes_nothing_into_runs_and_reuses_fresh_coverage(runs, tmp_pat
     assert stale in md_path.read_text()
 
 
+@pytest.mark.slow
 def test_find_run_dirs_takes_folders_but_not_what_lies_inside_a_run(runs, tmp_path):
     parent = runs["c1"].parent
     assert find_run_dirs([parent]) == sorted(runs.values())
@@ -332,6 +337,7 @@ def one_line_error(capsys, argv: list[str], fragment: str) -> None:
     assert err.count("\n") == 1 and err.startswith("drago: error: ") and fragment in err, err
 
 
+@pytest.mark.slow
 def test_cli_report(runs, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert cli.main(["report", str(runs["c1"].parent)]) == 0
@@ -357,6 +363,7 @@ def test_cli_report(runs, tmp_path, capsys, monkeypatch):
 # ---------------------------------------------------------------------------------------------------
 # transfers and DeepMind Control runs
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_report_has_a_transfer_section(transfers, tmp_path):
     t = transfers
     # The folder gives the sequence runs (their transfers are found inside them); transfer directories
@@ -475,6 +482,7 @@ def test_dmc_runs_get_learning_curves_of_their_raw_return(tmp_path):
 CHROMIUM = shutil.which("chromium")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="no `chromium` on PATH (scripts/setup.sh installs Debian's package "
                                               "where apt-get and root or sudo are available)")
 def test_report_renders_in_headless_chromium(report, tmp_path):
@@ -500,6 +508,7 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
     assert image.size == (1280, 2000) and not_blank(image)
 
 
+@pytest.mark.slow
 def test_relearning_transfers_give_continual_metrics_of_returns(runs, tmp_path):
     run = tmp_path / "continual-seed1"
     shutil.copytree(runs["c1"], run, ignore=shutil.ignore_patterns("transfer"))
@@ -525,6 +534,7 @@ def test_relearning_transfers_give_continual_metrics_of_returns(runs, tmp_path):
     assert "relearning matrix stops at T = 1; it lacks room2 after 1" in md_path.read_text()
 
 
+@pytest.mark.slow
 def test_forward_transfer_against_scratch_by_hand(runs, tmp_path):
     """A `scratch` reference at 0.5 of the optimum throughout: FT = (AUC - 0.5) / (1 - 0.5) per room."""
     reference = tmp_path / "scratch-seed1"
@@ -558,6 +568,7 @@ def test_forward_transfer_against_scratch_by_hand(runs, tmp_path):
     assert "needs `scratch` runs as the single-task reference" in md_path.read_text()
 
 
+@pytest.mark.slow
 def test_report_reuses_a_fresh_zero_shot_csv_made_with_the_defaults(runs, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(runs["c1"], run)

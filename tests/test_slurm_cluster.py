@@ -16,6 +16,9 @@ pytest_plugins = ("slurm_cluster",)
 pytest.register_assert_rewrite("slurm_cluster")
 from slurm_cluster import SlurmCluster, SlurmUnavailable, _unavailable, start_slurm_cluster, wait_for  # noqa: E402
 
+# Every test here starts a SLURM cluster.
+pytestmark = pytest.mark.slow
+
 
 def _listening(port: int) -> set[str]:
     """Local addresses with a listening TCP socket on ``port`` (from /proc/net/tcp and tcp6)."""
@@ -99,7 +102,7 @@ def test_squeue_lists_pending_and_running_jobs_and_scancel_removes_them(slurm_cl
     print("squeue -t all:\n" + c.squeue(all_states=True))
 
 
-@pytest.mark.slow
+@pytest.mark.experiment
 def test_time_limit_kills_the_job(slurm_cluster: SlurmCluster, tmp_path: Path):
     # --time=1 is SLURM's shortest limit (a minute); slurmctld checks limits every 30 s: 60 to 100 s in all.
     start = time.monotonic()

@@ -86,6 +86,7 @@ def test_an_agent_built_outside_a_run_resolves_precision_and_stays_eager(machine
     assert (agent.cfg.precision, agent.cfg.compile) == ("bfloat16", "false")
 
 
+@pytest.mark.slow
 def test_a_run_records_its_resolved_settings_prints_them_first_and_keeps_them_on_resume(machine, tmp_path, capsys):
     machine(compiler=False)
     out = tmp_path / "run"

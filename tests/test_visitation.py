@@ -40,6 +40,7 @@ def test_visit_counts_decode_cells_as_the_environment_encodes_them():
     assert counts[20, 7] == 1  # indexed [y, x]
 
 
+@pytest.mark.slow
 def test_a_drago_run_records_each_agents_visits_per_task(drago_run, tmp_path):
     out = drago_run
     rows = read_visitation(out / "visitation.csv")
@@ -71,6 +72,7 @@ def test_a_drago_run_records_each_agents_visits_per_task(drago_run, tmp_path):
     assert row[5:7] == ["800", "1,000"]
 
 
+@pytest.mark.slow
 def test_the_reviewers_pay_is_the_intrinsic_reward_of_the_old_models_predictions(drago_run, tmp_path):
     """r_old = sigmoid(4(score - theta)), c = sigmoid(score - theta), r = r_old - 0.5 c (paper §3.2, the official
     code's form), with score = -log(MSE + eps) of the stage's model as coverage computes it on its own."""
@@ -96,6 +98,7 @@ def test_the_reviewers_pay_is_the_intrinsic_reward_of_the_old_models_predictions
     assert row[5] == f"{pay.rooms['room1']['paid']:.2f}"  # the old rooms after task 1: room 1
 
 
+@pytest.mark.slow
 def test_what_the_reviewer_would_have_been_paid_under_the_papers_form_or_another_theta(drago_run):
     """The paper's form on the same checkpoint: r_old = sigmoid(-log mean|err|) = 1 / (1 + mean|err|), and at a
     task's start (current model = old model) r = (1 - 0.5) r_old; another theta shifts the code's sigmoid."""
@@ -114,6 +117,7 @@ def test_what_the_reviewer_would_have_been_paid_under_the_papers_form_or_another
         reviewer_pay_of_run(drago_run, variant="papr")
 
 
+@pytest.mark.slow
 def test_a_runs_threshold_offset_is_in_what_its_reviewer_is_paid(drago_run, tmp_path):
     run = tmp_path / "offset"
     shutil.copytree(drago_run, run)

@@ -90,6 +90,7 @@ def csv_scalars(run: Path, global_step) -> dict[int, dict[str, float]]:
 # ---------------------------------------------------------------------------------------------------
 # What W&B receives
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @needs_wandb
 def test_wandb_gets_tensorboards_scalars_and_the_whole_config(offline, tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -129,6 +130,7 @@ def test_wandb_gets_tensorboards_scalars_and_the_whole_config(offline, tmp_path)
     assert last_logged_step(cut) is None
 
 
+@pytest.mark.slow
 @needs_wandb
 def test_a_resumed_run_continues_the_same_wandb_run_without_repeating_a_step(offline, tmp_path, monkeypatch):
     """A crash after a periodic checkpoint; `drago resume` continues the W&B run under the same id and sends only
@@ -159,7 +161,7 @@ def test_a_resumed_run_continues_the_same_wandb_run_without_repeating_a_step(off
 
 
 @needs_wandb
-@pytest.mark.slow
+@pytest.mark.experiment
 def test_sigkill_then_resume_continues_the_wandb_run(offline, tmp_path):
     """A real kill: W&B loses what it had not yet written (it writes its log in blocks), and the resumed process
     sends every step after the last one the killed process's log holds, so no step is missing or repeated.

@@ -203,6 +203,7 @@ def test_a_model_that_lost_the_doors_loses_the_transfers_only():
 # ---------------------------------------------------------------------------------------------------
 # the matrix of a run
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_matrix_has_one_row_per_stage_and_task_and_is_reproducible(smoke_run, tmp_path):
     torch_before = torch.get_rng_state()
     numpy_before = np.random.get_state()[1].copy()
@@ -238,6 +239,7 @@ def test_matrix_has_one_row_per_stage_and_task_and_is_reproducible(smoke_run, tm
     assert len(table) == 1 + 4 and "room1to3" in table[0] and "*" in table[3]
 
 
+@pytest.mark.slow
 def test_matrix_plans_with_the_models_predictions(smoke_run):
     path = smoke_run / "checkpoints" / "task4_room4.pt"
     predictor = load_world_model(path)
@@ -252,6 +254,7 @@ def test_matrix_plans_with_the_models_predictions(smoke_run):
         ("room4", "dense"), ("room4", "sparse"), ("room3to4", "dense"), ("room3to4", "sparse")]
 
 
+@pytest.mark.slow
 def test_bad_runs_and_arguments_are_one_line_errors(smoke_run, tmp_path):
     other = tmp_path / "cheetah-run"
     write_run_config(other, load_config("cheetah-cpu"))
@@ -268,6 +271,7 @@ def test_bad_runs_and_arguments_are_one_line_errors(smoke_run, tmp_path):
     assert observation((1, 1), 0).dtype == np.float32
 
 
+@pytest.mark.slow
 def test_drago_eval_zero_shot_writes_each_runs_matrix_and_prints_its_metrics(smoke_run, tmp_path, capsys):
     from drago import cli
 

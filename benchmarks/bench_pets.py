@@ -29,7 +29,7 @@ from drago.agent.buffer import EpisodeReplay
 from drago.agent.factory import build_agent, build_world_model, build_world_optimizer, replay_horizon
 from drago.config import load_config
 from drago.envs import env_spec, make_env
-from drago.training.episodes import run_episode
+from drago.envs.episodes import run_episode
 from drago.training.rundir import write_rows_csv
 
 PRESETS = {"tdmpc": ("minigrid-cpu", "agent.mlp_dim"), "pets": ("minigrid-pets-cpu", "agent.pets_hidden")}

@@ -56,7 +56,7 @@ from drago.continual.drago import Drago
 from drago.envs import env_spec, make_env
 from drago.training.resources import PeakMemory, keep_freed_memory
 from drago.agent.networks import build_world_model
-from drago.training.episodes import run_episode
+from drago.envs.episodes import run_episode
 
 DEFAULT_PRESETS = ("minigrid", "minigrid-cpu", "cheetah-cpu")
 

@@ -16,6 +16,7 @@ import torch
 
 from drago.agent.protocol import ContinualAgent
 from drago.agent.buffer import EpisodeReplay
+from drago.agent.factory import replay_horizon
 from drago.config import Config, MethodSetting
 from drago.envs import EnvSpec
 
@@ -26,6 +27,14 @@ MAX_BUFFER = 1_000_000  # transitions, as in the official code
 def buffer_capacity(steps: int, episode_length: int) -> int:
     """Room for ``steps`` transitions in whole episodes, so no episode of a task is overwritten."""
     return -(-min(steps, MAX_BUFFER) // episode_length) * episode_length
+
+
+def task_replay(cfg: Config, spec: EnvSpec, steps: int, device: torch.device | str) -> EpisodeReplay:
+    """The prioritized replay of one agent's episodes of a task (at most ``steps`` transitions), in the
+    sequences its agent kind learns from: the learner's, and DRAGO's reviewer's."""
+    return EpisodeReplay(buffer_capacity(steps, cfg.env.episode_length), spec.obs_dim, spec.action_dim,
+                         replay_horizon(cfg), cfg.env.episode_length, cfg.agent.per_alpha, cfg.agent.per_beta,
+                         device=device)
 
 
 @dataclass(frozen=True)

@@ -19,13 +19,13 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-import numpy as np
 import torch
 
 from drago.agent.buffer import Batch, EpisodeReplay
-from drago.agent.factory import build_agent, replay_horizon
+from drago.agent.factory import build_agent
 from drago.agent.protocol import get_agent_kind
-from drago.continual.base import ContinualMethod, TaskState, buffer_capacity
+from drago.continual.base import ContinualMethod, TaskState, task_replay
+from drago.envs.episodes import run_episode
 from drago.continual.generative import (
     VAE,
     ContinuousCounts,
@@ -85,10 +85,7 @@ class Drago(ContinualMethod):
         if previous and self.use_reviewer and not self.single_agent:
             self.reviewer = build_agent(cfg, self.spec, task.world_model, task.world_optimizer, task=task.name,
                                         reviewer=True)
-            capacity = buffer_capacity(task.budget.max_reviewer_steps, cfg.env.episode_length)
-            self.reviewer_buffer = EpisodeReplay(capacity, self.spec.obs_dim, self.spec.action_dim, replay_horizon(cfg),
-                                                 cfg.env.episode_length, cfg.agent.per_alpha, cfg.agent.per_beta,
-                                                 device=self.device)
+            self.reviewer_buffer = task_replay(cfg, self.spec, task.budget.max_reviewer_steps, self.device)
             self.counts = None
             if cfg.method.pseudo_counts:
                 self.counts = (GridCounts(self.device) if self.spec.discrete
@@ -104,22 +101,19 @@ class Drago(ContinualMethod):
         explore_randomly = step < cfg.agent.seed_steps or len(self.reviewer_buffer) < cfg.agent.batch_size
         schedule = task.schedule_step
         bonus = self.counts.bonus if self.counts is not None else None
-        obs, _ = task.env.reset()
-        observations, actions = [obs], []
-        if self.counts is not None:
-            self.counts.update(torch.as_tensor(obs, device=self.device))
-        for t in range(L):
-            if explore_randomly:
-                action = reviewer.random_action(task.rng)
-            else:
-                action = reviewer.act(obs, schedule, eval_mode=False, first_step=t == 0, bonus=bonus)
-            obs, _, _, _, _ = task.env.step(action)
-            observations.append(obs)
-            actions.append(action)
-            if self.counts is not None:
+
+        def choose(obs, t):
+            if self.counts is not None:  # each state is counted before the reviewer plans from it
                 self.counts.update(torch.as_tensor(obs, device=self.device))
-        obs_t = torch.as_tensor(np.asarray(observations, dtype=np.float32), device=self.device)
-        act_t = torch.as_tensor(np.asarray(actions, dtype=np.float32), device=self.device)
+            if explore_randomly:
+                return reviewer.random_action(task.rng)
+            return reviewer.act(obs, schedule, eval_mode=False, first_step=t == 0, bonus=bonus)
+
+        episode = run_episode(task.env, L, choose)  # a plain reset: the reviewer has no pre-rollout
+        if self.counts is not None:
+            self.counts.update(torch.as_tensor(episode.obs[-1], device=self.device))
+        obs_t = torch.as_tensor(episode.obs, device=self.device)
+        act_t = torch.as_tensor(episode.actions, device=self.device)
         # The dynamics do not change during collection, so one batched call labels the whole episode
         # exactly as per-step calls would (the official code calls the model once per step).
         r = self._intrinsic(obs_t[:-1], act_t, obs_t[1:])

@@ -11,7 +11,7 @@ import numpy as np
 
 from drago.config import Config
 from drago.envs import exact_world, make_env
-from drago.training.episodes import run_episode
+from drago.envs.episodes import run_episode
 from drago.training.pre_rollout import load_learner
 from drago.training.rundir import atomic_write, heldout_path, task_checkpoint_path
 from drago.seeding import seeded_torch_rng, task_seed

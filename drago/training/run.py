@@ -18,9 +18,10 @@ from drago.training.heldout_sets import HeldoutRecorder
 from drago.training.logger import RunLogger
 from drago.training.pre_rollout import PreRollout
 from drago.training.resources import keep_freed_memory
-from drago.training.rundir import CONFIG_FILE, RunDirError, config_diffs, is_run_dir, read_run_config, write_run_config
+from drago.training.rundir import (CONFIG_FILE, RunDirError, config_diffs, is_run_dir, read_run_config,
+                                   resume_checkpoint_path, task_checkpoint_path, write_run_config)
 from drago.training.tracking import check_tracking, wandb_tracker
-from drago.training.trainer import Trainer
+from drago.training.trainer import Trainer, completed_tasks, global_env_step
 from drago.training.visitation import VisitationRecorder
 from drago.training.transfer import describe, paper_transfer_plan, plan_transfer, transfer_summary
 
@@ -66,7 +67,6 @@ def new_run(cfg: Config, run_dir: Path, force: bool = False, progress: bool = Tr
     run_dir.mkdir(parents=True, exist_ok=True)
     write_run_config(run_dir, cfg)
     trainer = _build(cfg, run_dir, device, progress)
-    trainer.logger = _logger(cfg, run_dir, trainer)
     trainer.speed_notes = speed_notes
     return trainer
 
@@ -76,40 +76,39 @@ def resume(run_dir: Path, progress: bool = True) -> Trainer:
     cfg = read_run_config(run_dir)
     device = resolve_device(cfg.train.device)
     _prepare_process(cfg)
-    trainer = _build(cfg, run_dir, device, progress)
+    done = completed_tasks(cfg, run_dir)
     # Read every finished task's checkpoint now, so a damaged one fails before any work starts.
-    for index in range(trainer.completed_tasks()):
-        load_checkpoint(trainer.task_checkpoint(index), kind="task", domain=cfg.env.domain)
+    for index in range(done):
+        load_checkpoint(task_checkpoint_path(run_dir, cfg.env.tasks, index + 1), kind="task", domain=cfg.env.domain)
     # TensorBoard must forget the events written after the checkpoint the run continues from. A checkpoint is
     # written after the rows of its own step, so those stay: the purge starts one step later.
-    if trainer.resume_checkpoint.exists():
-        state = load_checkpoint(trainer.resume_checkpoint, kind="resume", domain=cfg.env.domain)
-        checkpointed = trainer.global_env_step(index=state["task_index"], step=state["step"])
+    if resume_checkpoint_path(run_dir).exists():
+        state = load_checkpoint(resume_checkpoint_path(run_dir), kind="resume", domain=cfg.env.domain)
+        checkpointed = global_env_step(cfg, state["task_index"], state["step"])
     else:
-        checkpointed = trainer.global_env_step(index=trainer.completed_tasks())
-    trainer.logger = _logger(cfg, run_dir, trainer, purge_step=checkpointed + 1)
-    return trainer
+        checkpointed = global_env_step(cfg, done)
+    return _build(cfg, run_dir, device, progress, purge_step=checkpointed + 1)
 
 
-def _logger(cfg: Config, run_dir: Path, trainer: Trainer, purge_step: int | None = None) -> RunLogger:
-    return RunLogger(run_dir, cfg.train.tensorboard, purge_step=purge_step,
-                     wandb=wandb_tracker(cfg, run_dir, lambda line: trainer.logger.print(line)))
-
-
-def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool) -> Trainer:
+def _build(cfg: Config, run_dir: Path, device: torch.device, progress: bool,
+           purge_step: int | None = None) -> Trainer:
+    """The trainer of a run with everything it is handed: its logger, its method and its task-end hooks."""
     spec = env_spec(cfg.env.domain)
+    logger = RunLogger(run_dir, cfg.train.tensorboard, purge_step=purge_step,
+                       wandb=wandb_tracker(cfg, run_dir, lambda line: logger.print(line)))
     # Methods may build networks of their own (DRAGO's VAE): seed them like everything else.
     torch.manual_seed(cfg.train.seed)
     method = build_method(cfg, spec, device)
-    trainer = Trainer(cfg, run_dir, method, spec, None, device, progress=progress,
-                      episode_start=_LazyPreRollout(cfg, run_dir, device) if cfg.transfer.pre_rollout_checkpoint else None,
-                      summary_extras=(lambda tasks: {"transfer": transfer_summary(cfg, run_dir, tasks)})
-                      if cfg.transfer.checkpoint is not None else None)
+    hooks = []
     if HeldoutRecorder.wanted(cfg):
-        trainer.task_end_hooks.append(HeldoutRecorder(cfg, run_dir, device, lambda line: trainer.logger.print(line)))
+        hooks.append(HeldoutRecorder(cfg, run_dir, device, logger.print))
     if VisitationRecorder.wanted(cfg):
-        trainer.task_end_hooks.append(VisitationRecorder(cfg, run_dir, lambda line: trainer.logger.print(line)))
-    return trainer
+        hooks.append(VisitationRecorder(cfg, run_dir, logger.print))
+    return Trainer(cfg, run_dir, method, spec, logger, device, progress=progress,
+                   episode_start=_LazyPreRollout(cfg, run_dir, device) if cfg.transfer.pre_rollout_checkpoint else None,
+                   task_end_hooks=hooks,
+                   summary_extras=(lambda tasks: {"transfer": transfer_summary(cfg, run_dir, tasks)})
+                   if cfg.transfer.checkpoint is not None else None)
 
 
 class _LazyPreRollout:

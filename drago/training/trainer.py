@@ -19,15 +19,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from drago.agent.agent import Agent
+from drago.agent.protocol import ContinualAgent
 from drago.agent.buffer import EpisodeReplay, NonFinitePriority
-from drago.agent.factory import build_agent, build_world_model, build_world_optimizer, replay_horizon
+from drago.agent.factory import build_agent, build_world_model, build_world_optimizer
 from drago.config import Config
-from drago.continual.base import Budget, ContinualMethod, TaskState, buffer_capacity
+from drago.continual.base import Budget, ContinualMethod, TaskState, task_replay
 from drago.envs import EnvSpec, make_env, task_optimum
 from drago.seeding import rng_state, seeded_torch_rng, set_rng_state, task_seed
 from drago.training.checkpoint import load_checkpoint, save_checkpoint
-from drago.training.episodes import EpisodeStart, run_episode, run_episodes
+from drago.envs.episodes import EpisodeStart, run_episode, run_episodes
 from drago.training.logger import RunLogger
 from drago.training.resources import PeakMemory
 from drago.training.rundir import resume_checkpoint_path, task_checkpoint_path, write_summary
@@ -42,9 +42,22 @@ TaskEpisodeStart = Callable[[Any, int], np.ndarray]
 #: step counter and replay buffers by agent (``learner``, and what the method collected, e.g. ``reviewer``), or
 #: ``(index, None, 0, {})`` for a task finished before this process started (a resumed run), which lets a
 #: hook fill in what an older or crashed run lacks.
-TaskEndHook = Callable[[int, "Agent | None", int, "dict[str, EpisodeReplay]"], None]
+TaskEndHook = Callable[[int, "ContinualAgent | None", int, "dict[str, EpisodeReplay]"], None]
 #: Extra blocks for ``summary.json``, given the summary's finished tasks.
 SummaryExtras = Callable[[list[dict[str, Any]]], dict[str, Any]]
+
+def completed_tasks(cfg: Config, run_dir: Path) -> int:
+    """How many tasks of the sequence a run directory holds the checkpoints of, in order."""
+    done = 0
+    while done < len(cfg.env.tasks) and task_checkpoint_path(run_dir, cfg.env.tasks, done + 1).exists():
+        done += 1
+    return done
+
+
+def global_env_step(cfg: Config, index: int, step: int = 0) -> int:
+    """A monotone env step across the sequence for TensorBoard: task k starts at k * the most steps a task takes."""
+    return (index * Budget.from_config(cfg).max_steps + step) * cfg.env.action_repeat
+
 
 class Trainer:
     """Runs the configured task sequence into ``run_dir`` (:mod:`drago.training.run` builds one).
@@ -93,10 +106,7 @@ class Trainer:
         return resume_checkpoint_path(self.run_dir)
 
     def completed_tasks(self) -> int:
-        done = 0
-        while done < len(self.cfg.env.tasks) and self.task_checkpoint(done).exists():
-            done += 1
-        return done
+        return completed_tasks(self.cfg, self.run_dir)
 
     def env_steps(self, agent_steps: int) -> int:
         return agent_steps * self.cfg.env.action_repeat
@@ -105,7 +115,7 @@ class Trainer:
         """A monotone step across the sequence for TensorBoard: task k starts at k * max task steps."""
         if task is not None:
             index, step = task.index, task.step
-        return self.env_steps(index * Budget.from_config(self.cfg).max_steps + step)
+        return global_env_step(self.cfg, index, step)
 
     # ---- the sequence ----------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -151,9 +161,7 @@ class Trainer:
         world_optimizer = build_world_optimizer(cfg, world_model)
         learner = build_agent(cfg, spec, world_model, world_optimizer, task=name)
         budget = Budget.from_config(cfg)
-        capacity = buffer_capacity(budget.max_learner_steps, cfg.env.episode_length)
-        buffer = EpisodeReplay(capacity, spec.obs_dim, spec.action_dim, replay_horizon(cfg), cfg.env.episode_length,
-                               cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
+        buffer = task_replay(cfg, spec, budget.max_learner_steps, device)
         task = TaskState(index=index, name=name, world_model=world_model, world_optimizer=world_optimizer,
                          learner=learner, buffer=buffer, rng=rng, env=env, budget=budget,
                          schedule_clock=cfg.agent.schedule_clock)
@@ -269,7 +277,7 @@ class Trainer:
         start = self._episode_start
         return lambda env: start(env, step)
 
-    def _task_finished(self, index: int, learner: Agent | None = None, step: int = 0,
+    def _task_finished(self, index: int, learner: ContinualAgent | None = None, step: int = 0,
                        buffers: dict[str, EpisodeReplay] | None = None) -> None:
         for hook in self.task_end_hooks:
             hook(index, learner, step, buffers or {})

@@ -9,8 +9,9 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,62 +45,102 @@ def one_thread_env() -> dict[str, str]:
 ONE_THREAD_ENV = one_thread_env()
 
 
-def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: float = 300.0) -> int:
+def wait_for(predicate: Callable[[], bool], timeout: float, what: str, details: Callable[[], str] | None = None,
+             interval: float = 0.5) -> None:
+    """Polls ``predicate`` until it holds; TimeoutError naming ``what`` (and ``details()``) after ``timeout`` s.
+
+    The suite's bounded wait: a predicate may also assert what must stay true meanwhile (a process still running).
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        if predicate():
+            return
+        if time.monotonic() > deadline:
+            extra = f"\n{details()}" if details else ""
+            raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}{extra}")
+        time.sleep(interval)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Crash injection: how the tests stop a run in the middle. Inside the process, a call raises where a crash (or
+# Ctrl-C) would stop it; from outside, a SIGKILL, which no handler sees.
+# ---------------------------------------------------------------------------------------------------
+class SimulatedCrash(RuntimeError):
+    """What :func:`crash_at_call` raises by default: a test can tell it from an error of the code under test."""
+
+    def __init__(self, message: str = "simulated crash"):
+        super().__init__(message)
+
+
+@contextlib.contextmanager
+def crash_at_call(owner: Any, name: str, n: int = 1, when: Callable[..., bool] | None = None,
+                  error: type[BaseException] = SimulatedCrash) -> Iterator[None]:
+    """Make ``owner.name`` (a method of a class, or a function of a module) raise ``error`` at its ``n``-th call,
+    counting only the calls whose arguments satisfy ``when`` (all of them without it); restored on exit.
+
+    ``error=KeyboardInterrupt`` stands for Ctrl-C there. The code under test must look the name up at the call
+    (``module.function(...)``, ``self.method(...)``), as it does for monkeypatching.
+    """
+    own = vars(owner).get(name)  # restored as it was: a subclass may inherit the name rather than define it
+    original = getattr(owner, name)
+    calls = 0
+
+    def crashing(*args, **kwargs):
+        nonlocal calls
+        if when is None or when(*args, **kwargs):
+            calls += 1
+            if calls == n:
+                raise error()
+        return original(*args, **kwargs)
+
+    setattr(owner, name, crashing)
+    try:
+        yield
+    finally:
+        if own is None:
+            delattr(owner, name)
+        else:
+            setattr(owner, name, own)
+
+
+def crash_at_gradient_step(method: type, n: int, task: int | str | None = None) -> contextlib.AbstractContextManager:
+    """:func:`crash_at_call` at the ``n``-th ``method.gradient_step`` (of one task when ``task`` names it by index
+    or name): a test then resumes the run and compares its logs with those of an uninterrupted one."""
+    return crash_at_call(method, "gradient_step", n,
+                         when=lambda self, state, *rest: task is None or task in (state.index, state.name))
+
+
+def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: float = 300.0,
+                        drago: Sequence[str] = (str(Path(sys.executable).parent / "drago"),)) -> int:
     """Start ``drago train *train_args --out run`` in a child process and SIGKILL it once a periodic checkpoint
     of task 2 exists; returns the child's exit status (``-SIGKILL`` when the kill landed).
 
     A periodic snapshot of task 2 is a ``resume.pt`` newer than task 1's checkpoint (task 1's own last
     snapshot exists for a moment next to ``task1_room1.pt`` before it is deleted). ``wait_s`` bounds the wait,
-    generously for a loaded machine. The child gets this process's environment as it is at the call (a test's
-    monkeypatched variables included), with one thread.
+    generously for a loaded machine. ``drago`` is the command that starts drago (another environment's, say).
+    The child gets this process's environment as it is at the call (a test's monkeypatched variables
+    included), with one thread; its output goes to ``cwd / "train.log"``.
     """
-    drago = Path(sys.executable).parent / "drago"
     resume_ckpt, task1 = run / "checkpoints" / "resume.pt", run / "checkpoints" / "task1_room1.pt"
+    log_path = cwd / "train.log"
 
-    def in_task2_with_checkpoint() -> bool:
-        try:
-            return resume_ckpt.stat().st_mtime_ns > task1.stat().st_mtime_ns
-        except FileNotFoundError:
-            return False
-
-    with (cwd / "train.log").open("w") as log:
-        proc = subprocess.Popen([str(drago), "train", *train_args, "--out", str(run)], stdout=log,
+    with log_path.open("w") as log:
+        proc = subprocess.Popen([*drago, "train", *train_args, "--out", str(run)], stdout=log,
                                 stderr=subprocess.STDOUT, env=one_thread_env(), cwd=cwd)
-        deadline = time.monotonic() + wait_s
+
+        def in_task2_with_checkpoint() -> bool:
+            assert proc.poll() is None, (f"the run ended (rc {proc.returncode}) before it could be killed:\n"
+                                         f"{log_path.read_text()[-2000:]}")
+            try:
+                return resume_ckpt.stat().st_mtime_ns > task1.stat().st_mtime_ns
+            except FileNotFoundError:
+                return False
+
         try:
-            while not in_task2_with_checkpoint():
-                assert proc.poll() is None, f"the run ended (rc {proc.returncode}) before it could be killed"
-                assert time.monotonic() < deadline, f"no periodic checkpoint in task 2 within {wait_s:.0f} s"
-                time.sleep(0.02)
+            wait_for(in_task2_with_checkpoint, wait_s, "a periodic checkpoint in task 2", interval=0.02)
             proc.send_signal(signal.SIGKILL)
         finally:
             if proc.poll() is None:
                 proc.kill()
             proc.wait()
     return proc.returncode
-
-
-@contextlib.contextmanager
-def crash_at_gradient_step(method: type, n: int, task: int | str | None = None) -> Iterator[None]:
-    """Make ``method.gradient_step`` raise ``RuntimeError("simulated crash")`` at its ``n``-th call (counting
-    only the calls of one task when ``task`` names it by index or name), as a crash would stop a run there;
-    restored on exit.
-
-    The one crash injection of the suite: a test then resumes the run and compares its logs with those of an
-    uninterrupted one.
-    """
-    original = method.gradient_step
-    calls = {"n": 0}
-
-    def crashing(self, state, u):
-        if task is None or task in (state.index, state.name):
-            calls["n"] += 1
-            if calls["n"] == n:
-                raise RuntimeError("simulated crash")
-        return original(self, state, u)
-
-    method.gradient_step = crashing
-    try:
-        yield
-    finally:
-        method.gradient_step = original

@@ -41,11 +41,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from helpers import wait_for
 
 DAEMONS = ("munged", "slurmctld", "slurmd")
 CLIENTS = ("munge", "unmunge", "sbatch", "squeue", "scancel", "sinfo", "scontrol", "srun")
@@ -144,19 +145,6 @@ class SlurmCluster:
 
     def log_tail(self, lines: int = 15) -> str:
         return _log_tail(self.logs, lines)
-
-
-def wait_for(predicate: Callable[[], bool], timeout: float, what: str, details: Callable[[], str] | None = None,
-             interval: float = 0.5) -> None:
-    """Polls ``predicate`` until it holds; TimeoutError naming ``what`` (and ``details()``) after ``timeout`` s."""
-    deadline = time.monotonic() + timeout
-    while True:
-        if predicate():
-            return
-        if time.monotonic() > deadline:
-            extra = f"\n{details()}" if details else ""
-            raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}{extra}")
-        time.sleep(interval)
 
 
 def _log_tail(logs: dict[str, Path], lines: int) -> str:

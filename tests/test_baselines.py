@@ -29,7 +29,7 @@ from drago.continual.ewc import EWC, consistency_loss, ewc_penalty, fisher_diago
 from drago.continual.replay import Replay, ReservoirBuffer, replay_loss, replay_weight, stored_transitions
 from drago.envs import env_spec
 from drago.training.checkpoint import load_checkpoint, save_checkpoint
-from helpers import QUIET, crash_at_gradient_step
+from helpers import QUIET, SimulatedCrash, crash_at_gradient_step
 
 OBS, ACT, H, MLP = 3, 3, 3, 16
 TASKS = ("room1", "room2", "room3", "room4")
@@ -439,6 +439,7 @@ def checkpoints(run: Path) -> list[dict]:
             for i, t in enumerate(TASKS)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["ewc", "replay", "curiosity"])
 def test_smoke_sequence_carries_the_method_state_and_no_heads(method, runs):
     run = runs(method)
@@ -473,11 +474,12 @@ def test_smoke_sequence_carries_the_method_state_and_no_heads(method, runs):
             assert (r.get("learner_world_model_extra_loss", "") != "") == (has_loss and r["task"] != "room1"), r
 
 
-def test_replay_resumed_mid_task_matches_the_uninterrupted_run(runs, tmp_path, monkeypatch):
+@pytest.mark.slow
+def test_replay_resumed_mid_task_matches_the_uninterrupted_run(runs, tmp_path):
     reference = runs("replay")
     crashed = tmp_path / "crashed"
     # inside episode 4 of task 3, after the periodic checkpoint at step 200
-    with crash_at_gradient_step(Replay, 16, task=2), pytest.raises(RuntimeError, match="simulated crash"):
+    with crash_at_gradient_step(Replay, 16, task=2), pytest.raises(SimulatedCrash):
         cli.main(["train", "smoke", "--method", "replay", "--out", str(crashed), *QUIET, *EXTRA["replay"]])
     assert load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")["task_index"] == 2
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0

@@ -182,6 +182,7 @@ def test_public_api_is_exported_lazily():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.slow
 def test_load_world_model_predicts_as_the_network(smoke_run):
     path = task_checkpoint(smoke_run, 2)
     predictor = load_world_model(path)
@@ -212,6 +213,7 @@ def test_load_world_model_predicts_as_the_network(smoke_run):
                                predicted[:2], rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("obs_shape, action_shape", [((5, 2), (5, 3)), ((5, 3), (5, 4)), ((5, 3), (4, 3)),
                                                      ((3,), (3,)), ((5, 3, 1), (5, 3))])
 def test_predict_rejects_wrong_shapes(smoke_run, obs_shape, action_shape):
@@ -221,11 +223,12 @@ def test_predict_rejects_wrong_shapes(smoke_run, obs_shape, action_shape):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.slow
 def test_load_world_model_refuses_bad_checkpoints(smoke_run, tmp_path):
     with pytest.raises(CheckpointError, match="not found"):
         load_world_model(tmp_path / "missing.pt")
+    save_checkpoint(tmp_path / "resume.pt", {"task_index": 0}, kind="resume", domain="minigrid")
     with pytest.raises(CheckpointError, match="'resume' checkpoint"):
-        save_checkpoint(tmp_path / "resume.pt", {"task_index": 0}, kind="resume", domain="minigrid")
         load_world_model(tmp_path / "resume.pt")
     # Weights of another width than the stored config describes.
     data = load_checkpoint(task_checkpoint(smoke_run, 0), kind="task")
@@ -240,6 +243,7 @@ def test_load_world_model_refuses_bad_checkpoints(smoke_run, tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # drago eval coverage
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_eval_coverage_writes_csv(smoke_run, tmp_path, capsys):
     combined = tmp_path / "all.csv"
     assert cli.main(["eval", "coverage", str(smoke_run), "--out", str(combined)]) == 0
@@ -267,6 +271,7 @@ def test_eval_coverage_writes_csv(smoke_run, tmp_path, capsys):
     assert any(line.split()[:3] == [str(smoke_run), "4", "room4"] for line in table)
 
 
+@pytest.mark.slow
 def test_eval_coverage_of_a_run_in_progress_covers_finished_tasks(smoke_run, tmp_path):
     partial = tmp_path / "partial"
     (partial / "checkpoints").mkdir(parents=True)
@@ -286,6 +291,7 @@ def one_line_error(capsys, argv: list[str], fragment: str) -> None:
     assert lines[0].startswith("drago: error: ") and fragment in lines[0], lines[0]
 
 
+@pytest.mark.slow
 def test_eval_coverage_errors_are_one_line(smoke_run, tmp_path, capsys):
     not_a_run = tmp_path / "notes"
     not_a_run.mkdir()

@@ -21,7 +21,7 @@ from drago.continual.generative import (
 )
 from drago.envs.fourrooms import observation, traversable_cells
 from drago.training.checkpoint import load_checkpoint
-from helpers import crash_at_gradient_step
+from helpers import SimulatedCrash, crash_at_gradient_step
 
 
 def _world_model(seed: int) -> WorldModel:
@@ -168,6 +168,7 @@ def drago_run(smoke_runs):
     return smoke_runs("drago")
 
 
+@pytest.mark.slow
 def test_task_checkpoint_carries_world_model_vae_and_threshold_only(drago_run):
     ckpt = load_checkpoint(drago_run / "checkpoints" / "task2_room2.pt", kind="task")
     assert set(ckpt["method"]) == {"vae", "threshold", "tasks_seen"}
@@ -176,6 +177,7 @@ def test_task_checkpoint_carries_world_model_vae_and_threshold_only(drago_run):
     assert not any(k.startswith(("reviewer", "optimizer", "buffer")) for k in ckpt)
 
 
+@pytest.mark.slow
 def test_next_task_starts_from_the_saved_world_model_vae_and_threshold(drago_run, monkeypatch):
     from drago.continual.drago import Drago
     from drago.config import Config
@@ -190,6 +192,7 @@ def test_next_task_starts_from_the_saved_world_model_vae_and_threshold(drago_run
         assert torch.equal(method.vae.state_dict()[key], value)
 
 
+@pytest.mark.slow
 def test_drago_logs_reviewer_and_rehearsal_in_later_tasks(drago_run):
     import csv
 
@@ -205,7 +208,8 @@ def test_drago_logs_reviewer_and_rehearsal_in_later_tasks(drago_run):
         assert int(r["step"]) == 2 * int(r["learner_step"])
 
 
-def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
+@pytest.mark.slow
+def test_drago_resume_replays_exactly(tmp_path):
     from drago.continual import drago as drago_module
 
     reference = tmp_path / "ref"
@@ -216,8 +220,7 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
 
     crashed = tmp_path / "crashed"
     # the last iteration of task 2 (updates 11-20), after its checkpoint at step 400
-    with crash_at_gradient_step(drago_module.Drago, 15, task=1), \
-            pytest.raises(RuntimeError, match="simulated crash"):
+    with crash_at_gradient_step(drago_module.Drago, 15, task=1), pytest.raises(SimulatedCrash):
         cli.main([*args, "--out", str(crashed)])
     snapshot = load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")
     assert snapshot["task_index"] == 1  # resumed inside task 2, with the reviewer and rehearsal state live
@@ -226,6 +229,7 @@ def test_drago_resume_replays_exactly(tmp_path, monkeypatch):
         assert (crashed / name).read_bytes() == (reference / name).read_bytes(), name
 
 
+@pytest.mark.slow
 def test_separate_learner_and_reviewer_budgets(tmp_path):
     """A reviewer budget alone makes the budgets separate: the learner keeps steps_per_task (400)."""
     import csv
@@ -242,6 +246,7 @@ def test_separate_learner_and_reviewer_budgets(tmp_path):
     assert len(reviewer_rows) == 2
 
 
+@pytest.mark.slow
 def test_the_reviewer_is_paid_against_theta_less_the_offset(tmp_path):
     """With an offset of 100 nats every transition scores far above theta - 100, so r_old = c = 1 and each
     of the reviewer's 100 steps is paid 1 - 0.5 = 0.5: 50 an episode, what its reward sums to in train.csv."""
@@ -257,6 +262,7 @@ def test_the_reviewer_is_paid_against_theta_less_the_offset(tmp_path):
         assert float(row["reviewer_episode_reward"]) == pytest.approx(50.0, abs=1e-3)
 
 
+@pytest.mark.slow
 def test_shared_budget_halves_the_learner_steps_once_a_reviewer_runs(drago_run):
     import csv
 
@@ -311,6 +317,7 @@ def test_continuous_counts_round_trip():
 # ---------------------------------------------------------------------------------------------------
 # Speed: one world-model rollout per gradient step; reduced precision end to end
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_task_two_rolls_the_world_model_once_per_gradient_step(tmp_path, monkeypatch):
     """The learner's update reuses its rows of the reviewer's rollout instead of rolling them again."""
     from drago.agent import agent as agent_module
@@ -340,6 +347,7 @@ def test_task_two_rolls_the_world_model_once_per_gradient_step(tmp_path, monkeyp
         assert all(n == rows and grad for _, n, grad in mine)  # task 1: learner rows; task 2: 2B rows
 
 
+@pytest.mark.slow
 def test_drago_trains_in_bfloat16(tmp_path):
     import csv
 

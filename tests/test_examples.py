@@ -9,14 +9,16 @@ import signal
 import subprocess
 import sys
 import sysconfig
-import time
 from pathlib import Path
 
 import pytest
+from helpers import QUIET, sigkill_in_task_two
+
+# Every test here installs the example package into a virtual environment of its own.
+pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "drago-example"
-QUIET = ["--no-progress", "train.tensorboard=false"]
 
 
 @pytest.fixture(scope="module")
@@ -69,18 +71,10 @@ def test_the_plugins_preset_trains_by_name_with_the_plugins_own_setting(venv, tm
 
 def test_the_plugins_method_trains_resumes_after_a_kill_and_reports(venv, tmp_path):
     run = tmp_path / "anchor"
-    argv = [str(venv / "bin" / "python"), "-m", "drago", "train", "smoke", "--method", "l2-anchor", "--out", str(run),
-            *QUIET, "env.tasks=[room1,room2]"]
-    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    resume_checkpoint = run / "checkpoints" / "resume.pt"
-    deadline = time.monotonic() + 240
     # Killed in task 2, once its periodic checkpoint exists: the first task's anchor must survive the kill.
-    while not (resume_checkpoint.is_file() and (run / "checkpoints" / "task1_room1.pt").is_file()):
-        assert process.poll() is None, process.stdout.read()
-        assert time.monotonic() < deadline, "no checkpoint in task 2 within 240 s"
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait(timeout=30)
+    code = sigkill_in_task_two(["smoke", "--method", "l2-anchor", *QUIET, "env.tasks=[room1,room2]"], run, tmp_path,
+                               wait_s=240, drago=[str(venv / "bin" / "python"), "-m", "drago"])
+    assert code == -signal.SIGKILL
     resumed = drago(venv, "resume", str(run), "--no-progress")
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     report = drago(venv, "report", str(run), "--out", str(tmp_path / "report"))

@@ -33,6 +33,10 @@ from drago.eval.heldout import (  # noqa: E402
 from drago.report import build_report  # noqa: E402
 from drago.training import trainer as trainer_module  # noqa: E402
 from drago.seeding import task_seed  # noqa: E402
+from helpers import SimulatedCrash, crash_at_call  # noqa: E402
+
+# Every test here reads the DeepMind Control runs the module trains first.
+pytestmark = pytest.mark.slow
 
 TASKS = ("cheetah-run", "cheetah-jump")
 TINY_CHEETAH = ["env.domain=cheetah", "env.tasks=[cheetah-run,cheetah-jump]", "env.action_repeat=4",
@@ -122,19 +126,12 @@ def test_the_set_is_a_function_of_the_task_checkpoint(runs, tmp_path):
             np.testing.assert_array_equal(x, y)
 
 
-def test_crash_before_the_task_checkpoint_redoes_the_set(runs, tmp_path, monkeypatch):
+def test_crash_before_the_task_checkpoint_redoes_the_set(runs, tmp_path):
     crashed = tmp_path / "crashed"
-    original = trainer_module.save_checkpoint
-
-    def crash_at_the_first_task_checkpoint(path, payload, kind, domain):
-        if kind == "task":
-            raise RuntimeError("simulated crash")
-        return original(path, payload, kind, domain)
-
-    with monkeypatch.context() as m:
-        m.setattr(trainer_module, "save_checkpoint", crash_at_the_first_task_checkpoint)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            train(crashed)
+    # At the first task checkpoint: task 1's held-out set is recorded, its checkpoint not yet written.
+    with crash_at_call(trainer_module, "save_checkpoint", when=lambda path, payload, kind, domain: kind == "task"), \
+            pytest.raises(SimulatedCrash):
+        train(crashed)
     assert heldout_path(crashed, 1, TASKS[0]).is_file() and not checkpoint(crashed, 1).exists()
     heldout_path(crashed, 1, TASKS[0]).unlink()  # also when the crash came before the set was complete
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
@@ -142,19 +139,11 @@ def test_crash_before_the_task_checkpoint_redoes_the_set(runs, tmp_path, monkeyp
     same_sets(crashed, runs["with"])
 
 
-def test_resume_records_the_missing_set_of_a_finished_task(runs, tmp_path, monkeypatch):
+def test_resume_records_the_missing_set_of_a_finished_task(runs, tmp_path):
     crashed = tmp_path / "crashed"
-    original = trainer_module.Trainer.train_task
-
-    def crash_in_task_2(self, index, bar):
-        if index == 1:
-            raise RuntimeError("simulated crash")
-        return original(self, index, bar)
-
-    with monkeypatch.context() as m:
-        m.setattr(trainer_module.Trainer, "train_task", crash_in_task_2)
-        with pytest.raises(RuntimeError, match="simulated crash"):
-            train(crashed)
+    with crash_at_call(trainer_module.Trainer, "train_task", when=lambda self, index, bar: index == 1), \
+            pytest.raises(SimulatedCrash):  # as task 2 starts
+        train(crashed)
     heldout_path(crashed, 1, TASKS[0]).unlink()  # a finished task without its set (e.g. an older run)
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
     same_logs(crashed, runs["with"])

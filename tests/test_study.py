@@ -12,7 +12,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -23,7 +22,7 @@ from drago.continual.naive import Continual
 from drago.study import (DONE, RESUME, START, StudyError, describe_plan, parse_cases, parse_seeds, plan_study,
                          run_study)
 from drago.study_slurm import report_argv
-from helpers import crash_at_gradient_step
+from helpers import crash_at_gradient_step, wait_for
 
 METHODS = ("continual", "scratch")
 TINY = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100", "train.tensorboard=false",
@@ -139,6 +138,7 @@ def test_seeds_and_ranges():
 # ---------------------------------------------------------------------------------------------------
 # A study and its re-invocation
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_study_writes_runs_transfers_logs_and_report(reference):
     for method in METHODS:
         run = reference / method / "seed1"
@@ -159,6 +159,7 @@ def test_study_writes_runs_transfers_logs_and_report(reference):
     assert "| room3to4 after 4 | 88.0 |" in (report / "transfers.md").read_text()
 
 
+@pytest.mark.slow
 def test_second_invocation_only_rebuilds_the_report(reference, capsys):
     before = snapshot(reference)
     (reference / "report" / "report.html").unlink()
@@ -172,6 +173,7 @@ def test_second_invocation_only_rebuilds_the_report(reference, capsys):
     assert snapshot(reference) == before
 
 
+@pytest.mark.slow
 def test_crash_then_the_same_command_finishes_with_the_logs_of_an_uninterrupted_study(
         reference, tmp_path, monkeypatch, capsys):
     out = tmp_path / "crashed"
@@ -238,6 +240,7 @@ def test_a_job_that_exits_with_an_error_fails_the_study_and_points_at_its_log(tm
 # ---------------------------------------------------------------------------------------------------
 # Refusals
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["other-setting", "other-transfer-episodes", "not-a-run", "locked"])
 def test_a_folder_holding_something_else_is_a_one_line_error(reference, tmp_path, capsys, case):
     argv = study_argv(reference)
@@ -272,6 +275,7 @@ def test_a_folder_holding_something_else_is_a_one_line_error(reference, tmp_path
         assert text in err, text
 
 
+@pytest.mark.slow
 def test_transfers_evaluated_every_n_episodes_and_kept_to_that_setting(tmp_path):
     out = tmp_path / "every2"
     result = run_study(plan(out, methods=("continual",), episodes=2, transfer_eval_every=2), echo=lambda line: None,
@@ -304,6 +308,7 @@ def test_bad_arguments_are_one_line_errors(tmp_path, capsys, argv, expected):
 # ---------------------------------------------------------------------------------------------------
 # Child processes
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_jobs_run_in_parallel_child_processes_with_their_own_logs(tmp_path, capsys, monkeypatch):
     out = tmp_path / "parallel"
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
@@ -329,6 +334,7 @@ def alive(pid: int) -> bool:
         return False
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_a_child_dies_with_its_study(tmp_path):
     """A SIGKILLed study leaves no orphan that would race the next study for a run directory."""
@@ -337,18 +343,17 @@ def test_a_child_dies_with_its_study(tmp_path):
              f"open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(60)")
     parent = subprocess.Popen([sys.executable, "-c", "import subprocess, sys, time; "
                                f"subprocess.Popen([sys.executable, '-c', {child!r}]); time.sleep(60)"])
+
+    def child_started() -> bool:
+        assert parent.poll() is None, f"the parent ended (rc {parent.returncode}) before its child started"
+        return pid_file.is_file() and bool(pid_file.read_text())
+
     try:
-        deadline = time.monotonic() + 30
-        while not pid_file.is_file() or not pid_file.read_text():
-            assert time.monotonic() < deadline and parent.poll() is None
-            time.sleep(0.05)
+        wait_for(child_started, 30, "the child to start", interval=0.05)
         pid = int(pid_file.read_text())
         parent.send_signal(signal.SIGKILL)
         parent.wait()
-        deadline = time.monotonic() + 10
-        while alive(pid):
-            assert time.monotonic() < deadline, "the child outlived its parent"
-            time.sleep(0.05)
+        wait_for(lambda: not alive(pid), 10, "the child to die with its parent (it outlived it)", interval=0.05)
     finally:
         if parent.poll() is None:
             parent.kill()
@@ -357,6 +362,7 @@ def test_a_child_dies_with_its_study(tmp_path):
             os.kill(int(pid_file.read_text()), signal.SIGKILL)
 
 
+@pytest.mark.slow
 def test_sigterm_stops_a_background_study_and_its_jobs_like_ctrl_c(tmp_path):
     """Started from a script in the background a study ignores SIGINT; `kill PID` stops it cleanly, and it
     stops its jobs the same way, so the same command continues it."""
@@ -365,14 +371,20 @@ def test_sigterm_stops_a_background_study_and_its_jobs_like_ctrl_c(tmp_path):
             *study_argv(out, "train.steps_per_task=100000"), "--no-transfer"]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    train_csv, job_log = out / "continual" / "seed1" / "train.csv", out / "logs" / "continual-seed1.log"
+
+    def episodes_logged() -> int:
+        assert proc.poll() is None, f"the study ended (rc {proc.returncode})"
+        return max(0, len(train_csv.read_text().splitlines()) - 1) if train_csv.is_file() else 0
+
     try:
-        deadline = time.monotonic() + 60
-        while not (out / "continual" / "seed1" / "train.csv").is_file():  # the first job is training
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.1)
+        wait_for(lambda: episodes_logged() > 0, 60, "the first job to log an episode", interval=0.1)
         proc.send_signal(signal.SIGINT)  # ignored, as after `drago study ... &` in a script
-        time.sleep(0.5)
-        assert proc.poll() is None
+        # Ignored by the study, which keeps its job training: two more episodes, and the job was never told to stop
+        # (a job stopped at the end of its episode would log at most one).
+        logged = episodes_logged()
+        wait_for(lambda: episodes_logged() >= logged + 2, 60, "two more episodes after SIGINT", interval=0.1)
+        assert "drago: interrupted" not in job_log.read_text()
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -382,6 +394,6 @@ def test_sigterm_stops_a_background_study_and_its_jobs_like_ctrl_c(tmp_path):
     assert proc.returncode == 130
     assert err.strip().splitlines()[-1].startswith("drago: interrupted; run the same `drago study` command again")
     # The job stopped on its signal (a job killed after the study's wait would not have said so).
-    assert "drago: interrupted" in (out / "logs" / "continual-seed1.log").read_text()
+    assert "drago: interrupted" in job_log.read_text()
     assert [(j.label, j.state) for j in plan(out, "train.steps_per_task=100000", transfers=False).runs] == [
         ("continual seed1", RESUME), ("scratch seed1", START)]

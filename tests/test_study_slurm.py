@@ -2,10 +2,11 @@
 
 The first tests need no cluster: the dry run's sbatch options, the one-line refusals, how runs share GPUs. The others
 submit tiny `smoke` studies to the test cluster as a user would, with `python -m drago study ...` in a subprocess:
-a study through to its report; a job `scancel`ed in the middle, and one stopped by its time limit (slow), finishing
-after the same command is run again with train.csv and eval.csv byte-identical to an uninterrupted study; a second
-command while the jobs are queued submits nothing; a folder the nodes cannot see, and a partition SLURM does not know,
-are one-line errors. Where the cluster cannot start they are skipped with the reason. Every wait is bounded.
+a study through to its report; a job `scancel`ed in the middle, and one stopped by its time limit (an
+experiment), finishing after the same command is run again with train.csv and eval.csv byte-identical to an
+uninterrupted study; a second command while the jobs are queued submits nothing; a folder the nodes cannot see, and
+a partition SLURM does not know, are one-line errors. Where the cluster cannot start they are skipped with the
+reason. Every wait is bounded.
 """
 
 from __future__ import annotations
@@ -155,6 +156,7 @@ def test_without_submitit_the_error_says_how_to_install_it(tmp_path, capsys, mon
     assert err == "drago: error: --backend slurm needs submitit, which is not installed: pip install -e '.[slurm]'"
 
 
+@pytest.mark.slow
 def test_loading_submitit_leaves_the_callers_logging_alone():
     # submitit's own logging set-up closes every existing handler (absl's closes its stream with it); a user's
     # handler must survive the study's import, and the environment the jobs inherit must be the caller's.
@@ -184,6 +186,7 @@ def test_without_sbatch_the_error_says_where_to_run(tmp_path, capsys, monkeypatc
     assert err.startswith("drago: error: --backend slurm needs SLURM's sbatch, squeue, scancel on the PATH")
 
 
+@pytest.mark.slow
 def test_status_of_a_local_study_reads_the_directories(reference, capsys):
     assert cli.main(["study", "smoke", "--methods", "continual", "--seeds", "1", "--out", str(reference),
                      "--transfer-episodes", "1", *TINY, "--status"]) == 0
@@ -200,6 +203,7 @@ def _members(out: Path, settings: list[str], methods=("continual",)) -> list[stu
     return [study_slurm.Member(j.label, j.kind, str(j.directory), j.argv, str(j.log), j.threads) for j in plan.runs]
 
 
+@pytest.mark.slow
 def test_a_job_runs_its_runs_side_by_side_each_on_its_gpu(tmp_path, monkeypatch):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,6")  # as SLURM sets it for a job given two GPUs
     settings = [*TINY, "train.steps_per_task=200"]
@@ -215,6 +219,7 @@ def test_a_job_runs_its_runs_side_by_side_each_on_its_gpu(tmp_path, monkeypatch)
     assert "is complete: nothing to do" in Path(members[0].log).read_text()
 
 
+@pytest.mark.slow
 def test_stopped_near_the_time_limit_a_job_requeues_and_resumes_identically(reference, tmp_path):
     from concurrent.futures import ThreadPoolExecutor
 
@@ -239,6 +244,7 @@ def test_stopped_near_the_time_limit_a_job_requeues_and_resumes_identically(refe
     assert snapshot(run_dir) == expected and len(expected) == 2
 
 
+@pytest.mark.slow
 def test_a_job_that_wrote_no_checkpoint_in_most_of_its_time_is_not_requeued(tmp_path):
     from concurrent.futures import ThreadPoolExecutor
 
@@ -246,7 +252,10 @@ def test_a_job_that_wrote_no_checkpoint_in_most_of_its_time_is_not_requeued(tmp_
     job = study_slurm.StudyJob(members, time_limit_s=2)
     with ThreadPoolExecutor(1) as pool:
         attempt = pool.submit(job)
-        time.sleep(1.5)  # drago is still starting: no checkpoint yet
+        log = Path(members[0].log)
+        wait_for(lambda: log.is_file() and "drago train" in log.read_text(), 60, "the job to start drago",
+                 interval=0.05)
+        time.sleep(1.0)  # half the job's time limit since it started: most of its time, drago still starting
         assert job.checkpoint() is None
         with contextlib.suppress(RuntimeError):
             attempt.result(timeout=60)
@@ -256,10 +265,10 @@ def test_a_job_that_wrote_no_checkpoint_in_most_of_its_time_is_not_requeued(tmp_
 # ---------------------------------------------------------------------------------------------------
 # Against the one-node test cluster
 # ---------------------------------------------------------------------------------------------------
-@pytest.mark.slow
+@pytest.mark.experiment
 def test_smoke_study_runs_to_completion_through_slurm(slurm_env: SlurmCluster, reference, tmp_path):
-    """The uninterrupted path, two methods side by side (slow: the default suite's cancelled-job test below
-    walks the same path after its cancellation and checks the finished study the same way)."""
+    """The uninterrupted path, two methods side by side (an experiment: the default suite's cancelled-job test
+    below walks the same path after its cancellation and checks the finished study the same way)."""
     c = slurm_env
     out = tmp_path / "smoke"
     t0 = time.monotonic()
@@ -301,6 +310,7 @@ def _stop_when(condition, timeout: float, what: str) -> None:
     wait_for(condition, timeout, what, interval=0.05)
 
 
+@pytest.mark.slow
 def test_a_cancelled_job_finishes_after_the_same_command_with_identical_logs(slurm_env: SlurmCluster, reference,
                                                                             tmp_path):
     c = slurm_env
@@ -351,6 +361,7 @@ def test_a_cancelled_job_finishes_after_the_same_command_with_identical_logs(slu
     assert set(c.job_states()) == set(states)
 
 
+@pytest.mark.slow
 def test_a_second_command_while_the_jobs_are_queued_submits_nothing(slurm_env: SlurmCluster, tmp_path, capsys):
     c = slurm_env
     out = tmp_path / "held"
@@ -384,6 +395,7 @@ def test_a_second_command_while_the_jobs_are_queued_submits_nothing(slurm_env: S
         c.cancel_all()
 
 
+@pytest.mark.slow
 def test_an_unknown_partition_is_slurms_one_line_error(slurm_env: SlurmCluster, tmp_path):
     proc = drago(*study_argv(tmp_path / "nope", "--partition", "nope"), timeout=120, cwd=tmp_path)
     assert proc.returncode == 2
@@ -400,6 +412,7 @@ def _private_mounts_work(folder: Path) -> bool:
     return probe.returncode == 0 and not (folder / "x").exists()
 
 
+@pytest.mark.slow
 def test_a_folder_the_nodes_cannot_see_is_refused(slurm_env: SlurmCluster, tmp_path):
     """The study command runs where the folder is a private tmpfs (its own mount namespace): the node, which sees
     the machine's own filesystem there, cannot find what the command wrote."""
@@ -423,7 +436,7 @@ def test_a_folder_the_nodes_cannot_see_is_refused(slurm_env: SlurmCluster, tmp_p
     assert len(new) == 1 and slurm_env.squeue("%j", jobs=list(new), all_states=True) == "drago-check-folder"
 
 
-@pytest.mark.slow
+@pytest.mark.experiment
 def test_a_job_stopped_by_its_time_limit_is_requeued_and_finishes_identically(slurm_env: SlurmCluster, tmp_path):
     """The run trains for longer than the job's time limit: SLURM signals the job before the limit, the job stops
     drago and requeues itself (SLURM holds a requeued job for about two minutes), and the requeued job resumes.

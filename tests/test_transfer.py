@@ -23,7 +23,10 @@ from drago.envs import task_optimum
 from drago.training.checkpoint import load_checkpoint
 from drago.training.rundir import read_run_config
 from drago.training.transfer import paper_cases, reward_variant
-from helpers import QUIET, crash_at_gradient_step, read_csv
+from helpers import QUIET, SimulatedCrash, crash_at_gradient_step, read_csv
+
+# Every test here transfers from runs it trains first.
+pytestmark = pytest.mark.slow
 
 TWO_TASKS = "env.tasks=[room1,room2]"
 
@@ -206,19 +209,14 @@ def test_same_seed_gives_identical_transfer_logs(drago_transfer, sources, tmp_pa
         assert (again / name).read_bytes() == (drago_transfer / name).read_bytes(), name
 
 
-def crash_transfer_at_gradient_step(monkeypatch, n: int, source: Path, *args: str) -> None:
-    """Run a transfer that raises at its n-th DRAGO gradient step, as a crash would stop it."""
-    with crash_at_gradient_step(Drago, n), pytest.raises(RuntimeError, match="simulated crash"):
-        transfer(source, *args)
-
-
-def test_resume_after_a_crash_gives_the_uninterrupted_logs(sources, tmp_path, monkeypatch):
+def test_resume_after_a_crash_gives_the_uninterrupted_logs(sources, tmp_path):
     args = ["--task", "room1to2", "--after", "2", "--episodes", "3"]
     reference, crashed = tmp_path / "reference", tmp_path / "crashed"
     assert transfer(sources["drago"], *args, "--out", str(reference)) == 0
 
     # 10 updates per iteration; resume.pt was written after iterations 1 and 2.
-    crash_transfer_at_gradient_step(monkeypatch, 25, sources["drago"], *args, "--out", str(crashed))
+    with crash_at_gradient_step(Drago, 25), pytest.raises(SimulatedCrash):
+        transfer(sources["drago"], *args, "--out", str(crashed))
     assert load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")["episodes"] == 2
     assert not (crashed / "checkpoints" / "task1_room1to2.pt").exists()
 
@@ -230,14 +228,13 @@ def test_resume_after_a_crash_gives_the_uninterrupted_logs(sources, tmp_path, mo
     assert ours["few_shot"] == theirs["few_shot"] and ours["total_env_steps"] == theirs["total_env_steps"] == 600
 
 
-def test_paper_cases_run_in_turn_skip_finished_ones_and_resume_unfinished_ones(smoke_runs, tmp_path, monkeypatch,
-                                                                             capsys):
+def test_paper_cases_run_in_turn_skip_finished_ones_and_resume_unfinished_ones(smoke_runs, tmp_path, capsys):
     source = smoke_runs("drago")
     cases = [source / "transfer" / f"{task}-after{k}" for task, k in paper_cases("minigrid")]
     assert [c.name for c in cases] == ["room1to2-after2", "room1to3-after3", "room1to3-after4", "room3to4-after4"]
     args = ["--paper-cases", "--episodes", "2"]
 
-    with crash_at_gradient_step(Drago, 15, task="room1to3"), pytest.raises(RuntimeError, match="simulated crash"):
+    with crash_at_gradient_step(Drago, 15, task="room1to3"), pytest.raises(SimulatedCrash):
         transfer(source, *args)
     assert (cases[0] / "checkpoints" / "task1_room1to2.pt").is_file()
     assert (cases[1] / "checkpoints" / "resume.pt").is_file()
@@ -330,36 +327,24 @@ PRE_STEPS = 100  # the catalogue's pre_rollout_steps
 
 
 class EpisodeLog:
-    """Wraps run_episodes, which plays every episode: how each learner and evaluation episode started (the
-    reviewer's, which start from a plain reset, are counted apart in ``reviewer``)."""
+    """Wraps run_episodes, which plays every learner and evaluation episode: how each one started."""
 
     def __init__(self, monkeypatch):
-        from drago.continual import drago as drago_module
-        from drago.envs import episodes as episodes_module
+        from drago.training import episodes as episodes_module
         from drago.training import trainer as trainer_module
 
         self.records: list[dict] = []
-        self.reviewer, self.playing_reviewer = 0, False
-        original, original_one = episodes_module.run_episodes, drago_module.run_episode
+        original = episodes_module.run_episodes
 
         def run(envs, length, choose_actions, start=None):
             episodes = original(envs, length, choose_actions, start)
-            for env, episode in zip(envs, episodes if not self.playing_reviewer else []):
+            for env, episode in zip(envs, episodes):
                 self.records.append({"env": env, "pre_rollout": start is not None, "first": episode.obs[0].copy(),
                                      "elapsed": env.elapsed_steps, "observations": len(episode.obs)})
             return episodes
 
-        def reviewer_episode(env, length, choose_action, start=None):
-            self.reviewer += 1
-            self.playing_reviewer = True
-            try:
-                return original_one(env, length, choose_action, start)
-            finally:
-                self.playing_reviewer = False
-
         monkeypatch.setattr(episodes_module, "run_episodes", run)  # learner episodes, through run_episode
         monkeypatch.setattr(trainer_module, "run_episodes", run)  # evaluations
-        monkeypatch.setattr(drago_module, "run_episode", reviewer_episode)
 
 
 def manual_pre_rollout(env, ckpt: dict, steps: int = PRE_STEPS):
@@ -479,7 +464,7 @@ def test_reset_test_tasks_have_no_pre_rollout(cheetah_source, tmp_path, monkeypa
 
 
 @needs_dmc
-def test_x2y_transfer_is_deterministic_and_resumes_after_a_crash(jump2run, cheetah_source, tmp_path, monkeypatch):
+def test_x2y_transfer_is_deterministic_and_resumes_after_a_crash(jump2run, cheetah_source, tmp_path):
     args = ["--task", "jump2run", "--after", "2", "--episodes", "3"]
     again, crashed = tmp_path / "again", tmp_path / "crashed"
     assert transfer(cheetah_source, *args, "--out", str(again)) == 0
@@ -487,7 +472,8 @@ def test_x2y_transfer_is_deterministic_and_resumes_after_a_crash(jump2run, cheet
         assert (again / name).read_bytes() == (jump2run["dir"] / name).read_bytes(), name
 
     # 5 updates per iteration; resume.pt was written after iterations 1 and 2.
-    crash_transfer_at_gradient_step(monkeypatch, 12, cheetah_source, *args, "--out", str(crashed))
+    with crash_at_gradient_step(Drago, 12), pytest.raises(SimulatedCrash):
+        transfer(cheetah_source, *args, "--out", str(crashed))
     assert load_checkpoint(crashed / "checkpoints" / "resume.pt", kind="resume")["episodes"] == 2
     assert cli.main(["resume", str(crashed), "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv"):

@@ -198,7 +198,7 @@ def test_evaluation_never_changes_what_a_run_learns(reference, tmp_path):
 
 def test_episodes_side_by_side_are_the_episodes_one_at_a_time():
     from drago.envs import make_env
-    from drago.training.episodes import run_episode, run_episodes
+    from drago.envs.episodes import run_episode, run_episodes
 
     def fixed(seed):
         return np.random.default_rng(seed).integers(3, size=30)

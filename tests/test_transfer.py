@@ -327,24 +327,36 @@ PRE_STEPS = 100  # the catalogue's pre_rollout_steps
 
 
 class EpisodeLog:
-    """Wraps run_episodes, which plays every learner and evaluation episode: how each one started."""
+    """Wraps run_episodes, which plays every episode: how each learner and evaluation episode started (the
+    reviewer's, which start from a plain reset, are counted apart in ``reviewer``)."""
 
     def __init__(self, monkeypatch):
-        from drago.training import episodes as episodes_module
+        from drago.continual import drago as drago_module
+        from drago.envs import episodes as episodes_module
         from drago.training import trainer as trainer_module
 
         self.records: list[dict] = []
-        original = episodes_module.run_episodes
+        self.reviewer, self.playing_reviewer = 0, False
+        original, original_one = episodes_module.run_episodes, drago_module.run_episode
 
         def run(envs, length, choose_actions, start=None):
             episodes = original(envs, length, choose_actions, start)
-            for env, episode in zip(envs, episodes):
+            for env, episode in zip(envs, episodes if not self.playing_reviewer else []):
                 self.records.append({"env": env, "pre_rollout": start is not None, "first": episode.obs[0].copy(),
                                      "elapsed": env.elapsed_steps, "observations": len(episode.obs)})
             return episodes
 
+        def reviewer_episode(env, length, choose_action, start=None):
+            self.reviewer += 1
+            self.playing_reviewer = True
+            try:
+                return original_one(env, length, choose_action, start)
+            finally:
+                self.playing_reviewer = False
+
         monkeypatch.setattr(episodes_module, "run_episodes", run)  # learner episodes, through run_episode
         monkeypatch.setattr(trainer_module, "run_episodes", run)  # evaluations
+        monkeypatch.setattr(drago_module, "run_episode", reviewer_episode)
 
 
 def manual_pre_rollout(env, ckpt: dict, steps: int = PRE_STEPS):

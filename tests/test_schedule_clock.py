@@ -16,8 +16,6 @@ import torch
 import drago
 from drago.agent.networks import linear_schedule
 
-pytestmark = pytest.mark.slow
-
 SMOKE = ["env.tasks=[room1,room2]", "train.steps_per_task=600", "agent.lr_schedule_steps=600"]
 
 
@@ -26,12 +24,14 @@ def _run(tmp_path: Path, method: str, clock: str) -> Path:
     return Path(drago.train(cfg, tmp_path / f"{method}-{clock}", progress=False).path)
 
 
+@pytest.mark.slow
 def test_the_learner_clock_changes_nothing_without_a_reviewer(tmp_path):
     task, learner = (_run(tmp_path, "continual", clock) for clock in ("task", "learner"))
     assert (task / "train.csv").read_text() == (learner / "train.csv").read_text()
     assert (task / "eval.csv").read_text() == (learner / "eval.csv").read_text()
 
 
+@pytest.mark.slow
 def test_under_the_learner_clock_drago_s_learner_floor_follows_its_own_steps(tmp_path):
     cfg = drago.load_config("smoke", SMOKE, method="drago").agent
     floors = {}
@@ -47,3 +47,14 @@ def test_under_the_learner_clock_drago_s_learner_floor_follows_its_own_steps(tmp
         assert ckpt["learner_std_floor"] == pytest.approx(expected)
         floors[clock] = ckpt["learner_std_floor"]
     assert floors["learner"] > floors["task"]  # the learner's exploration noise falls more slowly
+
+
+@pytest.mark.parametrize("method, decides", [("continual", False), ("drago-no-reviewer", False), ("drago", True),
+                                             ("drago-no-rehearsal", True)])
+def test_the_clock_is_in_a_protocol_only_where_it_decides_something(method, decides):
+    from drago.training.records import protocol_digest, run_protocol
+
+    digests = {clock: protocol_digest(run_protocol(drago.load_config("smoke", [f"agent.schedule_clock={clock}"],
+                                                                     method=method), {}, ["coverage"]))
+               for clock in ("task", "learner")}
+    assert (digests["task"] != digests["learner"]) == decides

@@ -131,6 +131,9 @@ class ContinualMethod:
     description = "continual TD-MPC: carry the world model over and fine-tune it on each task"
     #: Build a fresh world model at every task instead of carrying the previous one over.
     fresh_world_model = False
+    #: Whether another agent (DRAGO's reviewer) plays episodes of a task besides the learner: only then do a
+    #: task's steps and its learner's differ, so only then does ``agent.schedule_clock`` change anything.
+    second_agent = False
     #: Settings of the method's own, by name (a plug-in cannot add fields to drago's config): each is set as
     #: ``method.NAME=value`` and read with :meth:`setting` (docs: Extending drago, "Settings of your own").
     settings: dict[str, MethodSetting] = {}

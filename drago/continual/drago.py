@@ -45,6 +45,7 @@ class Drago(ContinualMethod):
     use_reviewer = True
     #: add the intrinsic reward to the learner's own reward instead of training a reviewer
     single_agent = False
+    second_agent = True  # its reviewer
     #: train the VAE on every task (False: only on the first task, then frozen; pseudo-rehearsal)
     continual_vae = True
 
@@ -245,12 +246,14 @@ class DragoNoReviewer(Drago):
     name = "drago-no-reviewer"
     description = "DRAGO without the reviewer: synthetic rehearsal only"
     use_reviewer = False
+    second_agent = False
 
 
 class DragoSingleAgent(Drago):
     name = "drago-single-agent"
     description = "DRAGO with one learner that adds the reviewer's intrinsic reward to the task reward"
     single_agent = True
+    second_agent = False
 
     @classmethod
     def config_problem(cls, cfg):
@@ -271,4 +274,5 @@ class PseudoRehearsal(Drago):
     name = "pseudo-rehearsal"
     description = "pseudo-rehearsal (Ketz et al. 2019): a VAE trained on task 1 only, no reviewer"
     use_reviewer = False
+    second_agent = False
     continual_vae = False

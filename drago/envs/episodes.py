@@ -1,4 +1,4 @@
-"""Playing fixed-length episodes: the learner's, the evaluations', the held-out recordings'."""
+"""Playing fixed-length episodes: the learner's, DRAGO's reviewer's, the evaluations', the held-out recordings'."""
 
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from drago.config import Config
+from drago.config import Config, ConfigError
 from drago.training.rundir import (
     CHECKPOINT_FOLDER,
     CONFIG_FILE,
@@ -77,9 +77,20 @@ class RecordError(RunDirError):
 # ---- protocol --------------------------------------------------------------------------------------
 def _protocol_settings(cfg: Config) -> dict[str, Any]:
     settings = {key: value for key, value in flat_settings(cfg).items() if key not in NOT_PROTOCOL}
+    if not _has_second_agent(cfg.method.name):  # both clocks count the same steps: it decides nothing
+        settings.pop("agent.schedule_clock", None)
     # Settings that were added after records existed and whose default changes nothing are left out at that
     # default, so the records made before them keep their protocol.
     return {key: value for key, value in settings.items() if NEUTRAL.get(key, object()) != value}
+
+
+def _has_second_agent(method: str) -> bool:
+    from drago.continual import get_method
+
+    try:
+        return bool(get_method(method).second_agent)
+    except ConfigError:  # a plug-in method not installed here: keep every setting
+        return True
 
 
 def run_protocol(run: Config, transfers: Mapping[str, Config], evaluations: Sequence[str]) -> dict[str, Any]:

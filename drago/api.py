@@ -84,7 +84,7 @@ __all__ = [
 
 
 def load_config(preset: str, overrides: list[str] | None = None, method: str | None = None,
-                seed: int | None = None) -> Config:
+                seed: int | None = None, smoke: bool = False) -> Config:
     """A validated run config: a preset plus ``key=value`` overrides, with a method that exists.
 
     Args:
@@ -93,11 +93,13 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
         overrides: strings ``section.key=value``, or ``key=value`` for a key unique across sections.
         method: shortcut for ``method.name=...``.
         seed: shortcut for ``train.seed=...``.
+        smoke: the preset's smoke path, a run of seconds through the same code (see
+            :func:`drago.config.load_config`).
 
     Raises:
         ConfigError: one line naming the bad preset, file and line, key, value or method.
     """
-    return check_method(_load_settings(preset, overrides, method=method, seed=seed))
+    return check_method(_load_settings(preset, overrides, method=method, seed=seed, smoke=smoke))
 
 
 def plugin_problems() -> list[PluginProblem]:

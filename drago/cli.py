@@ -39,6 +39,9 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--out", type=Path, default=None, help="run directory (default runs/PRESET/METHOD/seedS)")
     train.add_argument("--force", action="store_true", help="overwrite an existing run directory")
     train.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+    train.add_argument("--smoke", action="store_true",
+                       help="the preset's smoke path: its tasks and agent at the smoke preset's budgets and sizes, "
+                            "a run of seconds (default folder runs/PRESET+smoke/...)")
 
     resume = sub.add_parser("resume", help="continue a run that was interrupted")
     resume.add_argument("run_dir", type=Path)
@@ -110,7 +113,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     if args.seed is not None and args.seed < 0:
         raise UsageError(f"--seed must be a non-negative integer, got {args.seed}")
-    cfg = load_config(args.preset, args.overrides, method=args.method, seed=args.seed)
+    cfg = load_config(args.preset, args.overrides, method=args.method, seed=args.seed, smoke=args.smoke)
     run_dir = args.out or default_run_dir(cfg)
     trainer = new_run(cfg, run_dir, force=args.force, progress=not args.no_progress)
     trainer.logger.print(f"drago train {cfg.preset} --method {cfg.method.name} --seed {cfg.train.seed} -> {run_dir} "

@@ -442,8 +442,12 @@ def _preset_layers(ref: str, chain: tuple[str, ...] = ()) -> list[tuple[dict[str
     return [*_preset_layers(base, (*chain, ref)), (data, where)]
 
 
+#: The preset whose own settings (not its base's) shrink any preset to a run of seconds (``smoke=True``).
+SMOKE_PRESET = "smoke"
+
+
 def load_config(preset: str, overrides: list[str] | None = None, method: str | None = None,
-                seed: int | None = None) -> Config:
+                seed: int | None = None, smoke: bool = False) -> Config:
     """Build a validated config from a preset plus ``key=value`` overrides.
 
     Args:
@@ -453,6 +457,9 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
             across sections (``mlp_dim=128``).
         method: shortcut for ``method.name=...``.
         seed: shortcut for ``train.seed=...``.
+        smoke: the preset's smoke path: the ``smoke`` preset's own settings (budgets, network and planner
+            sizes) over the preset's, before the overrides; its domain, tasks, agent kind and method stay.
+            The config's preset reads ``PRESET+smoke``.
 
     Raises:
         ConfigError: one line naming the bad preset, key or value.
@@ -464,7 +471,11 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
     # A method.* key that is no built-in setting may be one the chosen method declares: kept until the method
     # is known (an override or --method can still change it), then resolved against its declaration.
     pending: list[tuple[str, Any, str, bool]] = []
-    for data, where in _preset_layers(preset):
+    layers = _preset_layers(preset)
+    if smoke:
+        layers.append(_preset_layers(SMOKE_PRESET)[-1])
+        cfg.preset = f"{cfg.preset}+smoke"
+    for data, where in layers:
         _merge(cfg, data, where, pending)
     for item in overrides or []:
         key, sep, raw = item.partition("=")

@@ -51,8 +51,10 @@ from drago.continual.base import Budget
 from drago.envs import get_domain
 from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
 from drago.training.resources import keep_freed_memory_requested
-from drago.training.records import RECORD_SUFFIX, RecordError, protocol_diffs, read_record
-from drago.training.rundir import RunDirError, config_diffs, is_complete, is_run_dir, read_run_config, read_summary
+from drago.training.records import (RECORD_SUFFIX, RecordError, protocol_diffs, read_record,
+                                    settings_without_effect)
+from drago.training.rundir import (SETTINGS_THAT_MAY_DIFFER, RunDirError, config_diffs, is_complete, is_run_dir,
+                                   read_run_config, read_summary)
 from drago.training.transfer import (
     DEFAULT_EPISODES,
     default_transfer_dir,
@@ -220,8 +222,8 @@ def _state(directory: Path, wanted: Callable[[], Config], what: str, check: bool
         return directory_state(directory), None
     if not is_run_dir(directory):
         raise StudyError(f"{directory} is not empty and not a drago run; delete it or choose another --out")
-    existing = read_run_config(directory)
-    diffs = config_diffs(existing, wanted())
+    existing, wanted = read_run_config(directory), wanted()
+    diffs = config_diffs(existing, wanted, ignore=(*SETTINGS_THAT_MAY_DIFFER, *settings_without_effect(wanted)))
     if diffs:
         more = f" and {len(diffs) - 3} more" if len(diffs) > 3 else ""
         raise StudyError(f"{directory} holds a {what} with other settings than this study's "

@@ -58,3 +58,20 @@ def test_the_clock_is_in_a_protocol_only_where_it_decides_something(method, deci
                                                                      method=method), {}, ["coverage"]))
                for clock in ("task", "learner")}
     assert (digests["task"] != digests["learner"]) == decides
+
+
+@pytest.mark.parametrize("method, accepted", [("continual", True), ("drago", False)])
+def test_a_study_takes_over_a_run_whose_clock_cannot_matter(method, accepted, tmp_path):
+    from drago.study import StudyError, plan_study
+    from drago.training.rundir import write_run_config
+
+    run_dir = tmp_path / method / "seed1"
+    run_dir.mkdir(parents=True)
+    write_run_config(run_dir, drago.load_config("smoke", ["agent.schedule_clock=task"], method=method, seed=1))
+    plan = lambda: plan_study("smoke", [method], [1], out=tmp_path, overrides=["agent.schedule_clock=learner"],  # noqa: E731
+                              transfers=False)
+    if accepted:
+        assert [job.label for job in plan().runs] == [f"{method} seed1"]
+    else:
+        with pytest.raises(StudyError, match="agent.schedule_clock: 'task' there, 'learner' here"):
+            plan()

@@ -76,21 +76,24 @@ class RecordError(RunDirError):
 
 # ---- protocol --------------------------------------------------------------------------------------
 def _protocol_settings(cfg: Config) -> dict[str, Any]:
-    settings = {key: value for key, value in flat_settings(cfg).items() if key not in NOT_PROTOCOL}
-    if not _has_second_agent(cfg.method.name):  # both clocks count the same steps: it decides nothing
-        settings.pop("agent.schedule_clock", None)
+    idle = settings_without_effect(cfg)
+    settings = {key: value for key, value in flat_settings(cfg).items() if key not in NOT_PROTOCOL and key not in idle}
     # Settings that were added after records existed and whose default changes nothing are left out at that
     # default, so the records made before them keep their protocol.
     return {key: value for key, value in settings.items() if NEUTRAL.get(key, object()) != value}
 
 
-def _has_second_agent(method: str) -> bool:
+def settings_without_effect(cfg: Config) -> tuple[str, ...]:
+    """Settings that cannot change the results of ``cfg``'s method: left out of its protocol, and a run
+    directory that differs from a study's only in them is the study's run."""
     from drago.continual import get_method
 
     try:
-        return bool(get_method(method).second_agent)
-    except ConfigError:  # a plug-in method not installed here: keep every setting
-        return True
+        second_agent = bool(get_method(cfg.method.name).second_agent)
+    except ConfigError:  # a plug-in method not installed here: every setting may matter
+        second_agent = True
+    # Without a second agent a task's steps are its learner's: both clocks count the same.
+    return () if second_agent else ("agent.schedule_clock",)
 
 
 def run_protocol(run: Config, transfers: Mapping[str, Config], evaluations: Sequence[str]) -> dict[str, Any]:

@@ -11,6 +11,7 @@ from drago.agent.networks import TaskHeads
 from drago.config import AgentConfig
 from drago.envs import task_optimum
 from drago.eval.components import (ComponentsError, component_errors, grid_probe, heads_return, optimal_q,
+                                   rank_correlation,
                                    refit_heads)
 from drago.eval.costs import carried_bytes
 from drago.eval.zero_shot import true_dynamics
@@ -67,6 +68,15 @@ def test_the_probe_is_room_one_with_its_dp_values():
     assert 0 < probe.optimal.mean() < 1
     with pytest.raises(ComponentsError, match="training rooms"):
         grid_probe("room1to2", CFG.discount)
+
+
+def test_the_value_order_reads_the_critic_s_ranking_whatever_its_scale():
+    q_star = grid_probe("room1", 0.99).q_star
+    assert rank_correlation(0.01 * q_star - 5.0, q_star) == pytest.approx(1.0)  # far off in scale, same order
+    assert rank_correlation(-q_star, q_star) == pytest.approx(-1.0)
+    assert rank_correlation(np.zeros_like(q_star), q_star) == 0.0  # a constant critic orders nothing
+    # Ties share their mean rank: Spearman's rho of (1, 2, 2, 3) and (1, 2, 3, 4) is 0.9487 (closed form).
+    assert rank_correlation(np.array([1.0, 2.0, 2.0, 3.0]), np.arange(4.0)) == pytest.approx(3 / np.sqrt(10))
 
 
 def test_a_perfect_model_scores_no_dynamics_error():
@@ -137,7 +147,7 @@ def test_eval_components_writes_its_files_and_the_report_shows_them(tmp_path, ca
     with (run / "components.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     # stage 1: room1; stage 2: room1 and room2; six parts each
-    assert len(rows) == 3 * 6 and {r["component"] for r in rows} >= {"dynamics_1step", "return_own_heads"}
+    assert len(rows) == 3 * 7 and {r["component"] for r in rows} >= {"dynamics_1step", "return_own_heads"}
     with (run / "costs.csv").open() as handle:
         costs = list(csv.DictReader(handle))
     # replay is the one method that carries raw transitions of earlier tasks

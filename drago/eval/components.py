@@ -17,6 +17,9 @@ and seed (docs: Evaluation, "Which part forgot"):
   - ``reward_error``: mean absolute error of the reward head against the task's true reward;
   - ``value_error``: mean absolute error of min(Q1, Q2) against ``Q*``, divided by the mean ``|Q*|`` of the
     probe (so 0 is exact and 1 is as large as the values themselves);
+  - ``value_order``: rank correlation of min(Q1, Q2) with ``Q*`` over the probe (1: the critic orders the
+    probe's state-actions as the optimum does, whatever its scale; 0: no order). A critic far from ``Q*``'s
+    scale can still steer a planner that adds it at the horizon, so the order is read beside the error;
   - ``policy_agreement``: share of probe states where the policy head's action is an optimal one;
   - ``return_own_heads``: the return on task k of planning with the model and task k's heads (below), as a
     fraction of the task's DP optimum. Planning with the model and the *true* reward is the zero-shot matrix
@@ -89,9 +92,9 @@ from drago.training.rundir import run_checkpoints as _run_checkpoints
 
 __all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_UPDATES", "SWAP_FILE", "ComponentsError", "GridProbe",
            "HeadsPlanner", "component_errors", "components_checkpoints", "components_of_run", "evaluate_components",
-           "grid_probe", "heads_return", "refit_heads", "write_components_csv", "write_swap_csv"]
+           "grid_probe", "heads_return", "rank_correlation", "refit_heads", "write_components_csv", "write_swap_csv"]
 
-COMPONENTS = ("dynamics_1step", "dynamics_hstep", "reward_error", "value_error", "policy_agreement",
+COMPONENTS = ("dynamics_1step", "dynamics_hstep", "reward_error", "value_error", "value_order", "policy_agreement",
               "return_own_heads")
 COMPONENTS_FILE = "components.csv"
 SWAP_FILE = "swap.csv"
@@ -278,8 +281,26 @@ def component_errors(model: torch.nn.Module, heads: TaskHeads | None, probe: Gri
     optimal = probe.optimal.reshape(-1, N_ACTIONS)
     out["reward_error"] = float(np.abs(reward - probe.reward).mean())
     out["value_error"] = float(np.abs(q - probe.q_star).mean() / max(np.abs(probe.q_star).mean(), 1e-12))
+    out["value_order"] = rank_correlation(q, probe.q_star)
     out["policy_agreement"] = float(optimal[np.arange(len(chosen)), chosen].mean())
     return out
+
+
+def _ranks(values: np.ndarray) -> np.ndarray:
+    """Ranks 0..n-1 of ``values``, ties sharing their mean rank."""
+    order = np.argsort(values, kind="stable")
+    ranks = np.empty(len(values))
+    ranks[order] = np.arange(len(values))
+    _, tie, counts = np.unique(values, return_inverse=True, return_counts=True)
+    return np.bincount(tie, weights=ranks)[tie] / counts[tie]
+
+
+def rank_correlation(values: np.ndarray, reference: np.ndarray) -> float:
+    """Spearman's rank correlation of two equally long arrays; 0.0 when either is constant (it orders nothing)."""
+    a, b = _ranks(np.asarray(values, dtype=np.float64)), _ranks(np.asarray(reference, dtype=np.float64))
+    a, b = a - a.mean(), b - b.mean()
+    scale = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
+    return float((a * b).sum() / scale) if scale > 0 else 0.0
 
 
 # ---- the refit -----------------------------------------------------------------------------------------

@@ -23,6 +23,7 @@ COMPONENTS_PNG = "components.png"
 #: How each measure reads, for the table and the figure: higher is better for all but the errors.
 LABELS = {"dynamics_1step": "dynamics, 1 step (exact)", "dynamics_hstep": "dynamics, H steps (exact)",
           "reward_error": "reward error (MAE)", "value_error": "value error (MAE / mean |Q*|)",
+          "value_order": "value order (rank corr. with Q*)",
           "policy_agreement": "policy = optimal action", "return_own_heads": "return, model + own heads",
           "return_true_reward": "return, model + true reward"}
 ERRORS = ("reward_error", "value_error")

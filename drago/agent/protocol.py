@@ -238,7 +238,9 @@ def get_agent_kind(name: str) -> AgentKind:
 
 
 def capabilities_of(name: str) -> AgentCapabilities:
-    """A kind's capabilities, the built-in kinds' without building anything."""
+    """A kind's capabilities: those it was registered with, or a built-in kind's before its builders register."""
+    if name in _KINDS:
+        return _KINDS[name].capabilities
     return _BUILTIN[name] if name in _BUILTIN else get_agent_kind(name).capabilities
 
 

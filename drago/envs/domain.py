@@ -85,9 +85,9 @@ class Domain:
             :data:`RewardFunction` of observations, for planners told the reward (PETS's
             ``agent.pets_reward=known``) and zero-shot planning; None: the reward is known only to the env.
         exact_world: One of :data:`EXACT_WORLDS` when the domain's dynamics are that world's, whatever its
-            tasks: the exact evaluations (coverage, heatmaps, visitation maps; zero-shot planning and the
-            component probes with a known reward and optimum too) then apply to its runs. None: the
-            domain's runs get the sampled held-out sets instead.
+            tasks: coverage, heatmaps and visitation maps then apply to its runs (zero-shot planning and the
+            component probes too, for tasks of the grid's catalogue, whose rewards and optima they read).
+            None: the domain's runs get the sampled held-out sets instead.
     """
 
     name: str

@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from drago.config import Config, ConfigError, load_config
-from drago.continual import check_method
+from drago.continual import check_method, get_method
 from drago.continual.base import Budget
 from drago.envs import get_domain
 from drago.report.transfers import TRANSFERS_CSV, TRANSFERS_MD
@@ -231,6 +231,14 @@ def _state(directory: Path, wanted: Callable[[], Config], what: str, check: bool
     return (DONE if is_complete(directory) else RESUME), existing
 
 
+def _budget_line(cfg: Config, methods: Sequence[str]) -> str:
+    """The plan's budget line, with the schedules' clock where a method of the study has a second agent."""
+    line = Budget.from_config(cfg).describe()
+    if cfg.agent.schedule_clock == "learner" and any(get_method(m).second_agent for m in methods):
+        line += "; schedules counted in the learner's steps (the official clock: agent.schedule_clock=task)"
+    return line
+
+
 def _has_threads(overrides: Sequence[str]) -> bool:
     return any(item.partition("=")[0].strip() in ("train.threads", "threads") for item in overrides)
 
@@ -309,7 +317,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     plan = StudyPlan(preset=preset, out=out, methods=methods, seeds=seeds, overrides=overrides,
                      tasks=tuple(base.env.tasks), jobs=jobs, threads=base.train.threads, cores=cores,
                      transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept,
-                     budget=Budget.from_config(base).describe(), transfer_reward=transfer_reward,
+                     budget=_budget_line(base, methods), transfer_reward=transfer_reward,
                      transfer_few_shot_episodes=transfer_few_shot_episodes, own_cases=bool(cases) and not paper,
                      records=None if records is None else Path(records))
     if transfers and not cases:

@@ -74,7 +74,8 @@ def test_default_plan_is_the_grid_study(tmp_path, capsys):
     # Every learner gets the same 10k steps a task; DRAGO's reviewer up to 5k more (the preset's separate budgets).
     assert ("budget:    10,000 learner steps a task for every method, up to 5,000 more for DRAGO's reviewer; "
             "the official code's shared accounting: train.learner_steps_per_task=null "
-            "train.reviewer_steps_per_task=null") in text
+            "train.reviewer_steps_per_task=null; schedules counted in the learner's steps (the official clock: "
+            "agent.schedule_clock=task)") in text
     for method in ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer"):
         for seed in (1, 2, 3):
             assert f"{method} seed{seed}" in text
@@ -124,7 +125,10 @@ def test_dry_run_of_a_short_sequence_leaves_out_the_cases_it_cannot_run(tmp_path
                                                                       "train.reviewer_steps_per_task=200"])
     assert separate.budget == ("400 learner steps a task for every method, up to 200 more for DRAGO's reviewer; "
                                "the official code's shared accounting: train.learner_steps_per_task=null "
-                               "train.reviewer_steps_per_task=null")
+                               "train.reviewer_steps_per_task=null; schedules counted in the learner's steps (the "
+                               "official clock: agent.schedule_clock=task)")
+    # No method with a second agent: the clock changes nothing, and the line does not mention it.
+    assert "clock" not in plan_study("smoke", ["continual"], [1], out=out).budget
 
 
 def test_seeds_and_ranges():
@@ -378,12 +382,12 @@ def test_sigterm_stops_a_background_study_and_its_jobs_like_ctrl_c(tmp_path):
         return max(0, len(train_csv.read_text().splitlines()) - 1) if train_csv.is_file() else 0
 
     try:
-        wait_for(lambda: episodes_logged() > 0, 60, "the first job to log an episode", interval=0.1)
+        wait_for(lambda: episodes_logged() > 0, 180, "the first job to log an episode", interval=0.1)
         proc.send_signal(signal.SIGINT)  # ignored, as after `drago study ... &` in a script
         # Ignored by the study, which keeps its job training: two more episodes, and the job was never told to stop
         # (a job stopped at the end of its episode would log at most one).
         logged = episodes_logged()
-        wait_for(lambda: episodes_logged() >= logged + 2, 60, "two more episodes after SIGINT", interval=0.1)
+        wait_for(lambda: episodes_logged() >= logged + 2, 180, "two more episodes after SIGINT", interval=0.1)
         assert "drago: interrupted" not in job_log.read_text()
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)

@@ -265,8 +265,9 @@ def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: st
     returns every run's rows. A record (``*.json.gz``) gives the evaluation it recorded, read, not measured:
     its checkpoints stayed on the machine that trained it."""
     from drago.api import recorded_evaluation
+    from drago.training.records import RECORD_SUFFIX
 
-    records = [path for path in args.run_dirs if path.name.endswith(".json.gz")]
+    records = [path for path in args.run_dirs if path.name.endswith(RECORD_SUFFIX)]
     run_dirs = [path for path in args.run_dirs if path not in records]
     # Check every run before evaluating any, so a typo in the last argument fails at once.
     for run_dir in run_dirs:

@@ -59,7 +59,7 @@ from drago.eval.predictor import WorldModelPredictor, load_world_model
 from drago.report import ReportError, build_report
 from drago.training.checkpoint import CheckpointError, NonFiniteCheckpoint
 from drago.training.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
-from drago.training.records import RecordError, read_record
+from drago.training.records import RECORD_SUFFIX, RecordError, read_record
 from drago.training.rundir import RunDirError, read_run_config
 from drago.training.runs import Record, Run
 from drago.training.trainer import Trainer, TrainingDiverged
@@ -70,7 +70,7 @@ __all__ = [
     "write_retention_csv", "ZERO_SHOT_FILE", "ZeroShotError", "format_zero_shot_table", "write_zero_shot_csv",
     "zero_shot_ceiling", "zero_shot_checkpoints", "zero_shot_matrix", "zero_shot_metrics", "StagePay",
     "reviewer_pay_of_run", "plugin_packages", "describe_settings_fully", "MethodSetting",
-    "RecordError", "read_record", "record_run", "recorded_evaluation", "components_checkpoints",
+    "RECORD_SUFFIX", "RecordError", "read_record", "record_run", "recorded_evaluation", "components_checkpoints",
     "components_of_run", "costs_of_run", "evaluate_components", "AgentCapabilities", "AgentKind", "ContinualAgent",
     "agent_kinds", "get_agent_kind", "register_agent_kind",
     "CheckpointError", "Config", "ConfigError", "ContinualMethod", "Domain", "DomainError", "PluginProblem",

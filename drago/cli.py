@@ -264,8 +264,7 @@ def _evaluate_runs(args: argparse.Namespace, check, measure, write, filename: st
     """Measure every run's world models into a CSV per run (and optionally one for all), with a text table;
     returns every run's rows. A record (``*.json.gz``) gives the evaluation it recorded, read, not measured:
     its checkpoints stayed on the machine that trained it."""
-    from drago.api import recorded_evaluation
-    from drago.training.records import RECORD_SUFFIX
+    from drago.api import RECORD_SUFFIX, recorded_evaluation
 
     records = [path for path in args.run_dirs if path.name.endswith(RECORD_SUFFIX)]
     run_dirs = [path for path in args.run_dirs if path not in records]

@@ -1,8 +1,8 @@
 """Today's default speed settings against the plain path (float32, eager, torch's tanh), in one process, alternating.
 
 For each preset, DRAGO is set up at the start of task 2 twice (``bench_speed.task_two``): once with the
-preset's settings resolved as a run on this machine would resolve them (``agent.precision=auto``,
-``agent.compile=auto``, ``agent.fast_tanh=true``), once forced to ``float32``, ``false`` and ``false``, the
+preset's settings resolved as a run on this machine would resolve them (``agent.tdmpc.precision=auto``,
+``agent.tdmpc.compile=auto``, ``agent.tdmpc.fast_tanh=true``), once forced to ``float32``, ``false`` and ``false``, the
 path whose cost matches the official code's. Each round then times one call of every component of each
 form in turn (a planned action, a learner update, a full DRAGO gradient step), so both forms see the same
 machine; the figures are medians over ``--rounds``, after ``--warmup`` calls of each (which also compile).
@@ -30,7 +30,7 @@ from drago.config import load_config  # noqa: E402
 from drago.training.resources import keep_freed_memory  # noqa: E402
 from drago.training.rundir import write_rows_csv  # noqa: E402
 
-PLAIN = ["agent.precision=float32", "agent.compile=false", "agent.fast_tanh=false"]
+PLAIN = ["agent.tdmpc.precision=float32", "agent.tdmpc.compile=false", "agent.tdmpc.fast_tanh=false"]
 TIMED = ("act", "update", "drago_step")
 
 
@@ -59,7 +59,7 @@ def bench(preset: str, rounds: int, warmup: int) -> list[list]:
     rows = []
     for key in TIMED:
         default, plain = (1e3 * statistics.median(samples[(f, key)]) for f in ("default", "plain"))
-        rows.append([preset, forms["default"][0].agent.mlp_dim, key, speed_summary(forms["default"][0].agent),
+        rows.append([preset, forms["default"][0].agent.tdmpc.mlp_dim, key, speed_summary(forms["default"][0].agent),
                      round(default, 2), round(plain, 2), round(plain / default, 3)])
     return rows
 

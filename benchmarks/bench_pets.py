@@ -2,7 +2,7 @@
 
 Both agents are built the way a run builds them (``drago.agent.factory``) from the CPU grid presets,
 ``minigrid-cpu`` for TD-MPC and ``minigrid-pets-cpu`` for PETS, with the hidden width set to each value of
-``--widths`` (TD-MPC's ``agent.mlp_dim``, PETS's ``agent.pets_hidden``). Their planners keep their presets'
+``--widths`` (TD-MPC's ``agent.tdmpc.mlp_dim``, PETS's ``agent.pets.hidden``). Their planners keep their presets'
 budgets, which differ by design (TD-MPC: short horizon, value bootstrap and policy samples; PETS: a longer
 horizon over particles and no value), so the table also prints the model evaluations one action costs.
 
@@ -32,15 +32,16 @@ from drago.envs import env_spec, make_env
 from drago.envs.episodes import run_episode
 from drago.training.rundir import write_rows_csv
 
-PRESETS = {"tdmpc": ("minigrid-cpu", "agent.mlp_dim"), "pets": ("minigrid-pets-cpu", "agent.pets_hidden")}
+PRESETS = {"tdmpc": ("minigrid-cpu", "agent.tdmpc.mlp_dim"), "pets": ("minigrid-pets-cpu", "agent.pets.hidden")}
 
 
 def model_calls_per_action(cfg) -> int:
     """One-step model evaluations one planned action runs (samples x horizon x particles x iterations)."""
-    a = cfg.agent
-    if a.kind == "pets":
-        return a.pets_iterations * a.pets_population * a.pets_particles * a.pets_horizon
-    return a.iterations * (a.num_samples + int(a.mixture_coef * a.num_samples)) * a.horizon
+    if cfg.agent.kind == "pets":
+        p = cfg.agent.pets
+        return p.iterations * p.population * p.particles * p.horizon
+    t = cfg.agent.tdmpc
+    return t.iterations * (t.num_samples + int(t.mixture_coef * t.num_samples)) * t.horizon
 
 
 def build(kind: str, width: int, seed: int = 0) -> dict:
@@ -64,7 +65,7 @@ def build(kind: str, width: int, seed: int = 0) -> dict:
         ep = run_episode(env, L, lambda obs, t: agent.random_action(rng))
         buffer.add_episode(ep.obs, ep.actions, ep.rewards)
     obs = np.asarray(env.reset(seed=seed)[0])
-    step = max(cfg.agent.seed_steps, cfg.agent.horizon_schedule_steps, cfg.agent.std_schedule_steps) + 10 * L
+    step = max(cfg.agent.seed_steps, cfg.agent.tdmpc.horizon_schedule_steps, cfg.agent.tdmpc.std_schedule_steps) + 10 * L
 
     def update():
         batch = buffer.sample(B, rng)

@@ -23,7 +23,7 @@ For each preset it prints and records:
   ``ms - matmul ms`` is all the rest: elementwise kernels, normalisation, the optimizer, dispatch.
 
     .venv/bin/python benchmarks/bench_speed.py [--presets minigrid minigrid-cpu cheetah-cpu] [--threads 2]
-        [--repeats 10] [--device cpu|cuda] [--set agent.precision=bfloat16 ...] [--json new.json]
+        [--repeats 10] [--device cpu|cuda] [--set agent.tdmpc.precision=bfloat16 ...] [--json new.json]
         [--compare old.json]
 
 ``--compare OLD.json`` prints new/old ratios of every metric both files have (ms: below 1 is faster;
@@ -163,7 +163,7 @@ def task_two(cfg, device: torch.device, seed: int = 0) -> tuple[Drago, TaskState
     spec = env_spec(cfg.env.domain)
     torch.manual_seed(seed)
     method = Drago(cfg, spec, device)
-    method.load_carry_state({"vae": method.vae.state_dict(), "threshold": cfg.method.initial_threshold,
+    method.load_carry_state({"vae": method.vae.state_dict(), "threshold": cfg.method.reviewer.initial_threshold,
                              "tasks_seen": 1})
     world_model = build_world_model(cfg, spec, device)
     world_optimizer = torch.optim.Adam(world_model.dynamics.parameters(), lr=cfg.agent.lr)
@@ -171,7 +171,7 @@ def task_two(cfg, device: torch.device, seed: int = 0) -> tuple[Drago, TaskState
     budget = Budget.from_config(cfg)
     L = cfg.env.episode_length
     buffer = EpisodeReplay(buffer_capacity(budget.max_learner_steps, L), spec.obs_dim, spec.action_dim,
-                           cfg.agent.horizon, L, cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
+                           cfg.agent.tdmpc.horizon, L, cfg.agent.per_alpha, cfg.agent.per_beta, device=device)
     name = cfg.env.tasks[min(1, len(cfg.env.tasks) - 1)]
     env = make_env(cfg.env.domain, name, cfg.env.dense_reward, action_repeat=cfg.env.action_repeat)
     env.reset(seed=seed)
@@ -179,7 +179,7 @@ def task_two(cfg, device: torch.device, seed: int = 0) -> tuple[Drago, TaskState
     task = TaskState(index=1, name=name, world_model=world_model, world_optimizer=world_optimizer,
                      learner=learner, buffer=buffer, rng=rng, env=env, budget=budget)
     method.begin_task(task)
-    episodes = max(4, -(-cfg.agent.batch_size // (L - cfg.agent.horizon)) + 1)
+    episodes = max(4, -(-cfg.agent.batch_size // (L - cfg.agent.tdmpc.horizon)) + 1)
     for _ in range(episodes):
         ep = run_episode(env, L, lambda obs, t: learner.random_action(rng))
         buffer.add_episode(ep.obs, ep.actions, ep.rewards)
@@ -191,8 +191,8 @@ def task_two(cfg, device: torch.device, seed: int = 0) -> tuple[Drago, TaskState
 
 def late_step(cfg) -> int:
     """A task step past the seed phase and the horizon schedule: planning at the full horizon."""
-    a = cfg.agent
-    return max(a.seed_steps, a.horizon_schedule_steps, a.std_schedule_steps) + 10 * cfg.env.episode_length
+    t = cfg.agent.tdmpc
+    return max(cfg.agent.seed_steps, t.horizon_schedule_steps, t.std_schedule_steps) + 10 * cfg.env.episode_length
 
 
 def components(method: Drago, task: TaskState, cfg) -> dict:
@@ -204,7 +204,7 @@ def components(method: Drago, task: TaskState, cfg) -> dict:
     bonus = method.counts.bonus if method.counts is not None else None
     reviewer = method.reviewer
     B = cfg.agent.batch_size
-    freq = cfg.method.rehearsal_freq
+    freq = cfg.method.rehearsal.freq
 
     def learner_update():  # task 1 (or continual): the learner also trains the world model
         batch = task.buffer.sample(B, rng)
@@ -220,7 +220,7 @@ def components(method: Drago, task: TaskState, cfg) -> dict:
     def vae_step():
         method._vae_step(task.buffer.sample(B, rng).concat(method.reviewer_buffer.sample(B, rng)))
 
-    u0 = step - step % (freq * cfg.agent.update_freq)  # a step with rehearsal and target EMA
+    u0 = step - step % (freq * cfg.agent.tdmpc.update_freq)  # a step with rehearsal and target EMA
     return {
         "act": (lambda: task.learner.act(obs, step, eval_mode=False, first_step=True), L),
         "reviewer_act": (lambda: reviewer.act(obs, step, eval_mode=False, first_step=True, bonus=bonus), L),
@@ -263,20 +263,20 @@ def bench_preset(name: str, args) -> dict:
     method, task = task_two(cfg, device)
     parts = components(method, task, cfg)
     # FLOPs depend only on shapes: with torch.compile on they are counted on an eager twin.
-    if cfg.agent.compile == "true":
-        eager = load_config(name, [*overrides, "agent.compile=false", f"agent.precision={cfg.agent.precision}"],
+    if cfg.agent.tdmpc.compile == "true":
+        eager = load_config(name, [*overrides, "agent.tdmpc.compile=false", f"agent.tdmpc.precision={cfg.agent.tdmpc.precision}"],
                             method="drago")
         twin_parts = components(*task_two(eager, device), eager)
     else:
         twin_parts = parts
 
-    result = {"preset": name, "device": str(device), "precision": cfg.agent.precision,
-              "compile": cfg.agent.compile == "true", "fast_tanh": cfg.agent.fast_tanh, "mlp_dim": cfg.agent.mlp_dim, "horizon": cfg.agent.horizon,
-              "batch_size": cfg.agent.batch_size, "planner_samples": cfg.agent.num_samples,
-              "planner_iterations": cfg.agent.iterations, "episode_length": cfg.env.episode_length,
-              "updates_per_episode": cfg.updates_per_episode, "rehearsal_freq": cfg.method.rehearsal_freq,
+    result = {"preset": name, "device": str(device), "precision": cfg.agent.tdmpc.precision,
+              "compile": cfg.agent.tdmpc.compile == "true", "fast_tanh": cfg.agent.tdmpc.fast_tanh, "mlp_dim": cfg.agent.tdmpc.mlp_dim, "horizon": cfg.agent.tdmpc.horizon,
+              "batch_size": cfg.agent.batch_size, "planner_samples": cfg.agent.tdmpc.num_samples,
+              "planner_iterations": cfg.agent.tdmpc.iterations, "episode_length": cfg.env.episode_length,
+              "updates_per_episode": cfg.updates_per_episode, "rehearsal_freq": cfg.method.rehearsal.freq,
               "matmul_gflops": rate / 1e9, "components": {}}
-    if cfg.agent.precision == "bfloat16":  # context only: utilisation stays relative to float32
+    if cfg.agent.tdmpc.precision == "bfloat16":  # context only: utilisation stays relative to float32
         result["matmul_gflops_bfloat16"] = matmul_flops(device, torch.bfloat16) / 1e9
     for key, (fn, calls) in parts.items():
         repeats = 200 if key == "env_step" else args.repeats
@@ -292,7 +292,7 @@ def bench_preset(name: str, args) -> dict:
             "calls_per_iteration": calls, "page_faults": faults}
 
     c = result["components"]
-    L, U, freq = cfg.env.episode_length, cfg.updates_per_episode, cfg.method.rehearsal_freq
+    L, U, freq = cfg.env.episode_length, cfg.updates_per_episode, cfg.method.rehearsal.freq
     # drago_step was timed on a step with rehearsal; on average only 1 step in `freq` has one.
     skip = (1 - 1 / freq)
     step_s = (c["drago_step"]["ms"] - skip * c["rehearsal_step"]["ms"]) / 1e3

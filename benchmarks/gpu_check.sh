@@ -57,7 +57,7 @@ smoke_one() {
     begin=$(date +%s)
     timeout "$RUN_LIMIT_S" "$PYTHON" -m drago train smoke --method "$method" --out "$OUT/runs/$name" --force \
         --no-progress train.tensorboard=false "train.device=$device" train.threads=1 \
-        "agent.compile=$compile" "agent.precision=$precision" > "$OUT/runs/$name.log" 2>&1
+        "agent.tdmpc.compile=$compile" "agent.tdmpc.precision=$precision" > "$OUT/runs/$name.log" 2>&1
     code=$?
     echo "$name $code $(( $(date +%s) - begin ))"
 }
@@ -80,7 +80,7 @@ if [ "$cuda" = 1 ]; then
     "$PYTHON" benchmarks/bench_speed.py --device cuda --presets minigrid cheetah --repeats 5 \
         --json "$OUT/bench-eager-float32.json" > "$OUT/bench-eager-float32.txt" 2>&1
     "$PYTHON" benchmarks/bench_speed.py --device cuda --presets minigrid cheetah --repeats 5 \
-        --set agent.compile=true agent.precision=bfloat16 --json "$OUT/bench-compiled-bfloat16.json" \
+        --set agent.tdmpc.compile=true agent.tdmpc.precision=bfloat16 --json "$OUT/bench-compiled-bfloat16.json" \
         --compare "$OUT/bench-eager-float32.json" > "$OUT/bench-compiled-bfloat16.txt" 2>&1
     say "benchmark (minigrid and cheetah, cuda): eager float32 in $OUT/bench-eager-float32.txt;" \
         "compiled bfloat16, with new/old ratios, in $OUT/bench-compiled-bfloat16.txt"

@@ -95,7 +95,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--csv", default=None, help="also write the table to this file")
-    parser.add_argument("overrides", nargs="*", metavar="key=value", help="planner settings, e.g. agent.pets_horizon=25")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="planner settings, e.g. agent.pets.horizon=25")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}")

@@ -10,7 +10,7 @@ Each measurement is made with no random steps (epsilon 0: the planner alone, whi
 with the evaluation's default share of random steps (what the reported matrices are read against).
 
 It then times a whole zero-shot matrix (4 stages x 7 tasks) of one run on one thread: a run given with
---run, or else a smoke run trained here with the minigrid-cpu world model's width (agent.mlp_dim=128),
+--run, or else a smoke run trained here with the minigrid-cpu world model's width (agent.tdmpc.mlp_dim=128),
 whose models learned nothing but cost what a trained one costs to plan with.
 
     .venv/bin/python benchmarks/zero_shot_ceiling.py [--seeds 3] [--episodes 4] [--horizons 5,10,15,20,25,100]
@@ -93,7 +93,7 @@ def smoke_run(where: Path) -> Path:
     from drago.config import load_config
     from drago.training.run import new_run
 
-    cfg = load_config("smoke", ["agent.mlp_dim=128", "train.tensorboard=false", "train.threads=1"],
+    cfg = load_config("smoke", ["agent.tdmpc.mlp_dim=128", "train.tensorboard=false", "train.threads=1"],
                       method="continual")
     run_dir = where / "run"
     new_run(cfg, run_dir, progress=False).run()
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             run_dir = args.run
             if run_dir is None:
-                print("\ntraining a smoke run with agent.mlp_dim=128 to time a matrix ...")
+                print("\ntraining a smoke run with agent.tdmpc.mlp_dim=128 to time a matrix ...")
                 run_dir = smoke_run(Path(tmp))
             times, matrix = [], []
             for _ in range(2):

@@ -84,7 +84,7 @@ __all__ = [
 
 
 def load_config(preset: str, overrides: list[str] | None = None, method: str | None = None,
-                seed: int | None = None, smoke: bool = False) -> Config:
+                seed: int | None = None, smoke: bool = False, inapplicable_ok: bool = False) -> Config:
     """A validated run config: a preset plus ``key=value`` overrides, with a method that exists.
 
     Args:
@@ -95,11 +95,14 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
         seed: shortcut for ``train.seed=...``.
         smoke: the preset's smoke path, a run of seconds through the same code (see
             :func:`drago.config.load_config`).
+        inapplicable_ok: accept overrides that the chosen agent kind or method does not read (one list of
+            overrides for several methods); by default such an override is an error naming who reads it.
 
     Raises:
         ConfigError: one line naming the bad preset, file and line, key, value or method.
     """
-    return check_method(_load_settings(preset, overrides, method=method, seed=seed, smoke=smoke))
+    return check_method(_load_settings(preset, overrides, method=method, seed=seed, smoke=smoke,
+                                       inapplicable_ok=inapplicable_ok))
 
 
 def plugin_problems() -> list[PluginProblem]:

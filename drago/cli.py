@@ -32,7 +32,8 @@ def _parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="run a continual task sequence",
                            usage="drago train PRESET [options] [key=value ...]",
-                           epilog="key=value overrides any setting, e.g. agent.mlp_dim=256 (see `drago list --settings`)")
+                           epilog="key=value overrides any setting, e.g. agent.tdmpc.mlp_dim=256 "
+                                  "(see `drago list --settings`)")
     train.add_argument("preset", help="preset name (see `drago list`)")
     train.add_argument("--method", default=None, help="continual method (default: the preset's, continual)")
     train.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, 1)")

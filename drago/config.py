@@ -41,7 +41,7 @@ class _Section:
     def __setattr__(self, name: str, value: Any) -> None:
         declared = [f.name for f in fields(self)] if dataclasses.is_dataclass(self) else []
         if declared and name not in declared:
-            raise ConfigError(_unknown(f"{self.section}.{name}", [f"{self.section}.{d}" for d in declared]))
+            raise ConfigError(_unknown(f"{self.section}.{name}", [key for key, _, _ in _leaves(self, self.section)]))
         object.__setattr__(self, name, value)
 
 
@@ -93,20 +93,14 @@ class EnvConfig(_Section):
 
 
 @dataclass
-class AgentConfig(_Section):
-    """The TD-MPC agent as modified in DRAGO (paper §2; docs: Design, the agent), or PETS (docs: Methods, PETS)."""
+class TdmpcConfig(_Section):
+    """TD-MPC as modified in DRAGO (paper §2; docs: Design, the agent): read when ``agent.kind=tdmpc``."""
 
-    # tdmpc: TD-MPC, the paper's agent; pets: PETS (Chua et al. 2018), the agent of the paper's Appendix E. The
-    # TD-MPC settings below do not apply to PETS except lr, batch_size, momentum, seed_steps and random_action_probs;
-    # PETS reads the pets_* settings.
-    kind: str = "tdmpc"
     mlp_dim: int = 512  # hidden width of every network (world model, heads, critics)
     use_crelu: bool = True  # CReLU dynamics as at the code's HEAD; the paper-era run used ELU (false)
     horizon: int = 10  # training and maximum planning horizon H
     discount: float = 0.99  # gamma of the TD targets and of the planner's returns
-    batch_size: int = 512  # sequences of H+1 steps per gradient step
-    lr: float = 1e-3  # Adam learning rate of every optimizer
-    # None: a constant lr (paper and code). Otherwise every optimizer of a task decays linearly lr -> lr_final
+    # None: a constant lr (paper and code). Otherwise every optimizer of a task decays linearly agent.lr -> lr_final
     # over its first lr_schedule_steps task steps; optimizers start afresh with each task (paper §3.3; docs: Design, how a run flows).
     lr_final: float | None = None
     lr_schedule_steps: int = 300_000  # task steps over which lr decays to lr_final (see lr_final)
@@ -118,8 +112,6 @@ class AgentConfig(_Section):
     tau: float = 0.01  # target EMA coefficient (the paper's table calls it "temperature")
     update_freq: int = 40  # target EMA every this many gradient steps
     first_step_qr_only: bool = False  # true: reward and value losses at t=0 only (code: DMC true, grid false)
-    per_alpha: float = 0.6  # prioritized replay: priority exponent
-    per_beta: float = 0.4  # prioritized replay: importance-weight exponent
     # Planning (paper §2; docs: Design, the agent).
     iterations: int = 6  # CEM iterations per planned action
     num_samples: int = 512  # action sequences sampled per CEM iteration
@@ -134,13 +126,6 @@ class AgentConfig(_Section):
     horizon_schedule_steps: int = 10_000  # planning horizon grows linearly 1 -> H over these task steps
     std_schedule_start: float = 0.5  # CEM std floor, linear start -> min_std over std_schedule_steps
     std_schedule_steps: int = 50_000  # task steps over which the CEM std floor falls to min_std
-    seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
-    # What the horizon, std-floor, lr and target-EMA schedules count: "task", a task's agent steps with DRAGO's
-    # reviewer's (the official code's clock), or "learner", the learner's alone; the same for reviewer-less methods.
-    schedule_clock: str = "task"
-    # Seed-phase probabilities of a discrete domain's actions, used when there is one per action (the grid's
-    # left, right, forward); other discrete domains, or an empty list, draw uniformly.
-    random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)
     # Speed (docs: Speed and precision). A run resolves each `auto` on the machine it starts on and writes the
     # choice into its config.yaml (drago.agent.speed). bfloat16: autocast of the networks' hidden layers in
     # updates and planning; output layers, losses, TD targets and optimizer state stay float32.
@@ -149,19 +134,49 @@ class AgentConfig(_Section):
     # The heads' tanh (critics, policy mean) as 2*sigmoid(2x) - 1: within 3e-7 of torch.tanh, faster on
     # CPUs where torch.tanh is not vectorised (docs: Speed and precision); false gives torch.tanh's bits.
     fast_tanh: bool = True
-    # -- PETS (agent.kind=pets; docs: Methods, PETS): a probabilistic ensemble and CEM over action sequences --
-    pets_members: int = 5  # ensemble size E
-    pets_hidden: int = 200  # width of every hidden layer of the ensemble (and of the learned reward)
-    pets_layers: int = 4  # hidden layers of each ensemble member
-    pets_particles: int = 20  # particles per action sequence; a multiple of pets_members spreads them evenly
-    pets_propagation: str = "tsinf"  # tsinf: a particle keeps its member for the whole horizon; ts1: redrawn each step
-    pets_horizon: int = 25  # planning horizon in agent steps
-    pets_iterations: int = 5  # CEM iterations per planned action
-    pets_population: int = 400  # action sequences per CEM iteration
-    pets_elites: int = 40  # best sequences that refit the CEM distribution
+
+
+@dataclass
+class PetsAgentConfig(_Section):
+    """PETS (Chua et al. 2018; docs: Methods, PETS), a probabilistic ensemble and CEM over action sequences:
+    read when ``agent.kind=pets``."""
+
+    members: int = 5  # ensemble size E
+    hidden: int = 200  # width of every hidden layer of the ensemble (and of the learned reward)
+    layers: int = 4  # hidden layers of each ensemble member
+    particles: int = 20  # particles per action sequence; a multiple of members spreads them evenly
+    propagation: str = "tsinf"  # tsinf: a particle keeps its member for the whole horizon; ts1: redrawn each step
+    horizon: int = 25  # planning horizon in agent steps
+    iterations: int = 5  # CEM iterations per planned action
+    population: int = 400  # action sequences per CEM iteration
+    elites: int = 40  # best sequences that refit the CEM distribution
+    momentum: float = 0.1  # weight of the previous CEM mean in each refit
     # learned: each agent learns r(s, a, s') with a head of its own; known: the learner plans on the task's
-    # true reward (the grid only; DRAGO's reviewer still learns its intrinsic reward)
-    pets_reward: str = "learned"
+    # true reward (a domain that declares it, as the grid; DRAGO's reviewer still learns its intrinsic reward)
+    reward: str = "learned"
+
+
+@dataclass
+class AgentConfig(_Section):
+    """The agent: what every kind reads, then one section per built-in kind (agent.tdmpc, agent.pets); a run reads
+    the section of its ``kind`` only."""
+
+    # tdmpc: TD-MPC, the paper's agent; pets: PETS, the agent of the paper's Appendix E; or a registered plug-in
+    # kind (`drago list` shows them)
+    kind: str = "tdmpc"
+    lr: float = 1e-3  # Adam learning rate of every optimizer (world model, heads, DRAGO's generator)
+    batch_size: int = 512  # training sequences (TD-MPC: of H+1 steps) per gradient step
+    seed_steps: int = 5_000  # random actions (and no updates) for this many agent steps of each task
+    # What the horizon, std-floor, lr and target-EMA schedules count: "task", a task's agent steps with DRAGO's
+    # reviewer's (the official code's clock), or "learner", the learner's alone; the same for reviewer-less methods.
+    schedule_clock: str = "task"
+    # Seed-phase probabilities of a discrete domain's actions, used when there is one per action (the grid's
+    # left, right, forward); other discrete domains, or an empty list, draw uniformly.
+    random_action_probs: tuple[float, ...] = (0.2, 0.2, 0.6)
+    per_alpha: float = 0.6  # prioritized replay: priority exponent
+    per_beta: float = 0.4  # prioritized replay: importance-weight exponent
+    tdmpc: TdmpcConfig = field(default_factory=TdmpcConfig)
+    pets: PetsAgentConfig = field(default_factory=PetsAgentConfig)
 
 
 @dataclass
@@ -199,24 +214,33 @@ class TrainConfig(_Section):
 
 
 @dataclass
-class MethodConfig(_Section):
-    """The continual-learning method and the settings of every method (each reads only its own)."""
+class VaeConfig(_Section):
+    """DRAGO's generative model over (observation, action) (paper §3.1)."""
 
-    name: str = "continual"  # the method (`drago list` shows them)
-    # -- DRAGO: generative model over (observation, action) (paper §3.1) --
-    vae_hidden_dim: int = 64  # code: 64 grid, 256 DMC (the paper's "vae latent dim")
-    vae_latent_dim: int = 64  # latent width of the VAE
-    vae_recon_coef: float = 1.0  # weight of the VAE's reconstruction term
-    vae_kl_coef: float = 1.0  # code: 1.0 grid, 0.02 DMC; the paper's table says 0.02
-    vae_data: str = "combined"  # combined: reviewer + learner rows (code); learner: learner rows only (paper Alg. 3)
-    # -- DRAGO: synthetic rehearsal (paper §3.1) --
-    rehearsal_freq: int = 1  # every this many gradient steps (code: 1 grid, 10 DMC; paper: 10, 20)
-    rehearsal_batch: int = 512  # generated (observation, action) pairs per rehearsal step
-    rehearsal_mode: str = "separate"  # separate: own optimizer step of weight 1 (code); joint: lambda-weighted term (paper)
-    rehearsal_lambda: float = 1.0  # weight of the rehearsal term in joint mode
-    rehearsal_target: str = "pre_squash"  # pre_squash: raw MLP outputs (code); post_squash: as the planner sees them
-    # -- DRAGO: reviewer (paper §3.2; docs: Design, paper and code) --
-    intrinsic_reward: str = "code"  # code: sigmoid(4(-log MSE_old - theta)) - a*sigmoid(-log MSE_cur - theta); paper: no theta, abs error
+    hidden_dim: int = 64  # code: 64 grid, 256 DMC (the paper's "vae latent dim")
+    latent_dim: int = 64  # latent width of the VAE
+    recon_coef: float = 1.0  # weight of the VAE's reconstruction term
+    kl_coef: float = 1.0  # code: 1.0 grid, 0.02 DMC; the paper's table says 0.02
+    data: str = "combined"  # combined: reviewer + learner rows (code); learner: learner rows only (paper Alg. 3)
+
+
+@dataclass
+class RehearsalConfig(_Section):
+    """DRAGO's synthetic rehearsal (paper §3.1): generated pairs labelled by the previous world model."""
+
+    freq: int = 1  # every this many gradient steps (code: 1 grid, 10 DMC; paper: 10, 20)
+    batch: int = 512  # generated (observation, action) pairs per rehearsal step
+    mode: str = "separate"  # separate: own optimizer step of weight 1 (code); joint: a weighted term (paper)
+    weight: float = 1.0  # weight of the rehearsal term in joint mode (the paper's lambda)
+    target: str = "pre_squash"  # pre_squash: raw MLP outputs (code); post_squash: as the planner sees them
+
+
+@dataclass
+class ReviewerConfig(_Section):
+    """DRAGO's reviewer and its intrinsic reward (paper §3.2; docs: Design, paper and code)."""
+
+    # code: sigmoid(4(-log MSE_old - theta)) - a*sigmoid(-log MSE_cur - theta); paper: no theta, abs error
+    intrinsic_reward: str = "code"
     cost_coef: float = 0.5  # alpha, the weight of the current model's familiarity
     initial_threshold: float = 9.5  # theta of task 2 when the checkpoint has none
     threshold_momentum: float = 0.9  # theta_new <- m * theta_new + (1 - m) * prediction score
@@ -225,14 +249,43 @@ class MethodConfig(_Section):
     # the paper, why the reviewer brings no room back), so r_old pays on few old transitions.
     threshold_offset: float = 0.0
     pseudo_counts: bool = True  # count bonus in reviewer planning (code only, not in the paper)
-    # -- EWC --
-    ewc_coef: float = 100.0  # weight of the quadratic penalty on the world model
-    ewc_fisher_batches: int = 50  # batches of the task's data used to estimate the diagonal Fisher
-    # -- bounded replay --
-    replay_capacity: int = 2163  # transitions kept across tasks; default: the grid VAE's memory (docs: Methods, replay)
-    replay_fraction: float = 0.5  # share of world-model rows drawn from the old-task buffer
-    # -- curiosity --
-    curiosity_coef: float = 1.0  # prediction-error bonus added to the learner's TD target
+
+
+@dataclass
+class EwcConfig(_Section):
+    """Elastic weight consolidation on the world model (docs: Methods, EWC)."""
+
+    coef: float = 100.0  # weight of the quadratic penalty on the world model
+    fisher_batches: int = 50  # batches of the task's data used to estimate the diagonal Fisher
+
+
+@dataclass
+class ReplayConfig(_Section):
+    """A bounded reservoir of old transitions (docs: Methods, replay)."""
+
+    capacity: int = 2163  # transitions kept across tasks; default: the grid VAE's memory (docs: Methods, replay)
+    fraction: float = 0.5  # share of world-model rows drawn from the old-task buffer
+
+
+@dataclass
+class CuriosityConfig(_Section):
+    """A prediction-error bonus in the learner's TD target (docs: Methods, curiosity)."""
+
+    coef: float = 1.0  # prediction-error bonus added to the learner's TD target
+
+
+@dataclass
+class MethodConfig(_Section):
+    """The continual-learning method, then one section per part of the built-in methods; each method reads the
+    sections it declares (`drago list --settings` names them)."""
+
+    name: str = "continual"  # the method (`drago list` shows them)
+    vae: VaeConfig = field(default_factory=VaeConfig)
+    rehearsal: RehearsalConfig = field(default_factory=RehearsalConfig)
+    reviewer: ReviewerConfig = field(default_factory=ReviewerConfig)
+    ewc: EwcConfig = field(default_factory=EwcConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    curiosity: CuriosityConfig = field(default_factory=CuriosityConfig)
     # The settings a plug-in method declares, by name (method.NAME=value sets one; docs: Extending drago)
     options: dict[str, Any] = field(default_factory=dict)
 
@@ -290,7 +343,7 @@ class Config:
     def from_dict(cls, data: dict[str, Any]) -> Config:
         """Rebuild a config written by :meth:`to_dict` (for example a run's ``config.yaml``)."""
         cfg = cls()
-        _merge(cfg, data, "")
+        _merge(cfg, migrate_saved(data), "")
         validate(cfg)
         return cfg
 
@@ -300,7 +353,13 @@ class Config:
 
 
 SECTIONS = ("env", "agent", "train", "method", "transfer")
-for _name, _cls in zip(SECTIONS, (EnvConfig, AgentConfig, TrainConfig, MethodConfig, TransferConfig)):
+#: Every section by its dotted name: the five above, then the agent kinds' and the methods' own.
+SECTION_CLASSES: dict[str, type] = {
+    "env": EnvConfig, "agent": AgentConfig, "agent.tdmpc": TdmpcConfig, "agent.pets": PetsAgentConfig,
+    "train": TrainConfig, "method": MethodConfig, "method.vae": VaeConfig, "method.rehearsal": RehearsalConfig,
+    "method.reviewer": ReviewerConfig, "method.ewc": EwcConfig, "method.replay": ReplayConfig,
+    "method.curiosity": CuriosityConfig, "transfer": TransferConfig}
+for _name, _cls in SECTION_CLASSES.items():
     _cls.section = _name  # class attributes, not fields: type.__setattr__ is not the instances' guard
 ELITE_SELECTIONS = ("sample", "argmax")
 PRECISIONS = ("auto", "float32", "bfloat16")
@@ -374,7 +433,8 @@ def _is_preset_file(ref: str) -> bool:
 
 
 def _yaml_with_lines(text: str, origin: str) -> tuple[Any, dict[tuple[str, str | None], int]]:
-    """A YAML document and the 1-based line of each top-level key and of each key one level below it."""
+    """A YAML document and the 1-based line of each top-level key and of each key below it (by its dotted path
+    inside its section, ``("agent", "tdmpc.horizon")``)."""
     try:
         node = yaml.compose(text)
         data = yaml.safe_load(text)
@@ -384,12 +444,18 @@ def _yaml_with_lines(text: str, origin: str) -> tuple[Any, dict[tuple[str, str |
         problem = getattr(err, "problem", None) or str(err).splitlines()[0]
         raise ConfigError(f"{origin}{line}: not valid YAML ({problem})") from None
     lines: dict[tuple[str, str | None], int] = {}
+
+    def index(section: str, mapping: yaml.MappingNode, prefix: str) -> None:
+        for inner, value in mapping.value:
+            lines[(section, prefix + str(inner.value))] = inner.start_mark.line + 1
+            if isinstance(value, yaml.MappingNode):
+                index(section, value, f"{prefix}{inner.value}.")
+
     if isinstance(node, yaml.MappingNode):
         for key, value in node.value:
             lines[(str(key.value), None)] = key.start_mark.line + 1
             if isinstance(value, yaml.MappingNode):
-                for inner, _ in value.value:
-                    lines[(str(key.value), str(inner.value))] = inner.start_mark.line + 1
+                index(str(key.value), value, "")
     return data, lines
 
 
@@ -446,8 +512,187 @@ def _preset_layers(ref: str, chain: tuple[str, ...] = ()) -> list[tuple[dict[str
 SMOKE_PRESET = "smoke"
 
 
+# ---- the tree of settings ---------------------------------------------------------------------------
+def _subsection(section: Any, name: str) -> bool:
+    return isinstance(getattr(section, name, None), _Section)
+
+
+def _leaves(section: Any, prefix: str) -> list[tuple[str, Any, dataclasses.Field]]:
+    """``(key, owning section, field)`` of every setting in ``section`` and its subsections, in field order."""
+    out = []
+    for f in fields(section):
+        if _subsection(section, f.name):
+            out += _leaves(getattr(section, f.name), f"{prefix}.{f.name}")
+        else:
+            out.append((f"{prefix}.{f.name}", section, f))
+    return out
+
+
+def setting_fields(cfg: Config | None = None) -> list[tuple[str, Any, dataclasses.Field]]:
+    """``(key, owning section, field)`` of every setting of ``cfg`` (default: the defaults), e.g.
+    ``("agent.tdmpc.horizon", cfg.agent.tdmpc, Field(horizon))``."""
+    cfg = cfg or Config()
+    return [leaf for name in SECTIONS for leaf in _leaves(getattr(cfg, name), name)]
+
+
+def _types(cls: type) -> dict[str, Any]:
+    """A section's declared field types, resolved by :func:`typing.get_type_hints` (once per class)."""
+    hints = _TYPES.get(cls)
+    if hints is None:
+        hints = _TYPES[cls] = typing.get_type_hints(cls)
+    return hints
+
+
+_TYPES: dict[type, dict[str, Any]] = {}
+
+
+def _section_at(cfg: Config, path: str) -> Any:
+    target: Any = cfg
+    for part in path.split("."):
+        target = getattr(target, part)
+    return target
+
+
+# ---- renamed settings -------------------------------------------------------------------------------
+def _renamed() -> dict[str, tuple[str, ...]]:
+    """Old key -> its new key(s): the agent kinds' and the methods' settings moved into sections of their own
+    (docs: Changelog). CEM momentum was one setting for both agent kinds and is now one in each."""
+    out: dict[str, tuple[str, ...]] = {f"agent.{f.name}": (f"agent.tdmpc.{f.name}",) for f in fields(TdmpcConfig)}
+    out["agent.momentum"] = ("agent.tdmpc.momentum", "agent.pets.momentum")
+    out.update({f"agent.pets_{f.name}": (f"agent.pets.{f.name}",) for f in fields(PetsAgentConfig)
+                if f.name != "momentum"})
+    out.update({f"method.vae_{f.name}": (f"method.vae.{f.name}",) for f in fields(VaeConfig)})
+    out.update({f"method.rehearsal_{f.name}": (f"method.rehearsal.{f.name}",) for f in fields(RehearsalConfig)
+                if f.name != "weight"})
+    out["method.rehearsal_lambda"] = ("method.rehearsal.weight",)
+    out.update({f"method.{f.name}": (f"method.reviewer.{f.name}",) for f in fields(ReviewerConfig)})
+    for section in ("ewc", "replay", "curiosity"):
+        out.update({f"method.{section}_{f.name}": (f"method.{section}.{f.name}",)
+                    for f in fields(SECTION_CLASSES[f"method.{section}"])})
+    return out
+
+
+#: Settings renamed when the agent kinds and the methods got sections of their own: old key -> new key(s).
+#: A run's saved config.yaml, a checkpoint's config and a record's protocol are migrated silently; a preset or an
+#: override that names an old key is refused with the new name.
+RENAMED: dict[str, tuple[str, ...]] = _renamed()
+_RENAMED_SHORT = {old.partition(".")[2]: new for old, new in RENAMED.items()}
+
+
+def _renamed_message(key: str, value: str | None = None) -> str | None:
+    new = RENAMED.get(key) or (_RENAMED_SHORT.get(key) if "." not in key else None)
+    if new is None:
+        return None
+    write = " and ".join(f"{n}={value}" if value is not None else n for n in new)
+    return f"setting '{key}' was renamed; write {write}"
+
+
+def migrate_saved(data: dict[str, Any]) -> dict[str, Any]:
+    """A saved config (a run's ``config.yaml``, a checkpoint's config) with renamed keys moved to their new
+    place; anything else unchanged (a copy, never the argument)."""
+    import copy
+
+    data = copy.deepcopy(data)
+    for old, new_keys in RENAMED.items():
+        section, _, name = old.partition(".")
+        values = data.get(section)
+        if not (isinstance(values, dict) and name in values):
+            continue
+        value = values.pop(name)
+        for new in new_keys:
+            *path, leaf = new.split(".")
+            target = data
+            for part in path:
+                target = target.setdefault(part, {})
+            target.setdefault(leaf, value)
+    return data
+
+
+def migrate_flat(settings: dict[str, Any]) -> dict[str, Any]:
+    """``{"section.key": value}`` settings (a record's protocol) with renamed keys under their new names."""
+    out: dict[str, Any] = {}
+    for key, value in settings.items():
+        for new in RENAMED.get(key, (key,)):
+            out.setdefault(new, value)
+    return out
+
+
+# ---- which settings a run reads ---------------------------------------------------------------------
+#: The method sections (``vae``, ``ewc``, ...) a method reads, by method name; None for a method not known
+#: here. The continual layer installs it (``ContinualMethod.reads``).
+method_reads: Callable[[str], tuple[str, ...] | None] = lambda name: None
+
+
+def applies(key: str, kind: str, method: str) -> bool:
+    """Whether a run of agent ``kind`` and method ``method`` reads the setting ``key``: an agent kind's
+    section (``agent.pets.*``) only under that kind, a method's section (``method.ewc.*``) only for methods
+    that declare it; every other setting always. A method unknown here reads every section."""
+    parts = key.split(".")
+    if len(parts) < 3:
+        return True
+    if parts[0] == "agent":
+        return parts[1] == kind
+    if parts[0] == "method":
+        reads = method_reads(method)
+        return reads is None or parts[1] in reads
+    return True
+
+
+def inapplicable_settings(cfg: Config) -> tuple[str, ...]:
+    """Every setting of ``cfg`` its agent kind and method do not read (left out of a record's protocol)."""
+    return tuple(key for key, _, _ in setting_fields(cfg) if not applies(key, cfg.agent.kind, cfg.method.name))
+
+
+def _readers(key: str) -> str:
+    """Who reads a section's setting, for messages: ``agent.kind=pets`` or ``methods drago, ewc``."""
+    parts = key.split(".")
+    if parts[0] == "agent":
+        return f"agent.kind={parts[1]}"
+    load_method_plugins()
+    from_methods = [name for name in METHOD_NAMES() if parts[1] in (method_reads(name) or ())]
+    return ("method " if len(from_methods) == 1 else "methods ") + ", ".join(from_methods)
+
+
+#: The names of the registered methods (installed by the continual layer, for messages).
+METHOD_NAMES: Callable[[], list[str]] = lambda: []
+
+
+def refuse_inapplicable(cfg: Config, keys: list[str]) -> None:
+    """Raise for the first of ``keys`` (settings someone set by name) that ``cfg``'s agent kind or method
+    would ignore, naming who reads it."""
+    for key in keys:
+        if not applies(key, cfg.agent.kind, cfg.method.name):
+            raise ConfigError(f"setting '{key}' applies to {_readers(key)}, and this run is agent.kind="
+                              f"{cfg.agent.kind}, method {cfg.method.name}: remove it")
+
+
+def overrides_for(overrides: list[str] | tuple[str, ...], kind: str, method: str) -> list[str]:
+    """The ``key=value`` overrides that a run of agent ``kind`` and method ``method`` reads: a study passes each
+    of its runs these, from one list for all its methods (a plug-in method's own setting is kept: its method
+    checks it)."""
+    kept = []
+    for item in overrides:
+        key, _, raw = item.partition("=")
+        full = apply_override(Config(), key.strip(), raw.strip(), pending=[])
+        if full is None or applies(full, kind, method):
+            kept.append(item)
+    return kept
+
+
+def unread_overrides(overrides: list[str] | tuple[str, ...], kind: str,
+                     methods: list[str] | tuple[str, ...]) -> str | None:
+    """One line naming the first override that none of ``methods`` reads (with agent ``kind``), or None."""
+    for item in overrides:
+        if not any(item in overrides_for([item], kind, method) for method in methods):
+            key = item.partition("=")[0].strip()
+            full = apply_override(Config(), key, item.partition("=")[2].strip(), pending=[]) or key
+            return f"setting '{full}' applies to {_readers(full)}, and none of this study's runs reads it: remove it"
+    return None
+
+
+# ---- building a config ------------------------------------------------------------------------------
 def load_config(preset: str, overrides: list[str] | None = None, method: str | None = None,
-                seed: int | None = None, smoke: bool = False) -> Config:
+                seed: int | None = None, smoke: bool = False, inapplicable_ok: bool = False) -> Config:
     """Build a validated config from a preset plus ``key=value`` overrides.
 
     Args:
@@ -460,6 +705,9 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
         smoke: the preset's smoke path: the ``smoke`` preset's own settings (budgets, network and planner
             sizes) over the preset's, before the overrides; its domain, tasks, agent kind and method stay.
             The config's preset reads ``PRESET+smoke``.
+        inapplicable_ok: accept overrides of settings the chosen agent kind or method does not read (a
+            study's overrides, which apply to some of its methods); by default they are an error. A preset
+            may always set them: one preset serves every method and agent kind.
 
     Raises:
         ConfigError: one line naming the bad preset, key or value.
@@ -477,17 +725,20 @@ def load_config(preset: str, overrides: list[str] | None = None, method: str | N
         cfg.preset = f"{cfg.preset}+smoke"
     for data, where in layers:
         _merge(cfg, data, where, pending)
+    named: list[str] = []
     for item in overrides or []:
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise ConfigError(f"override '{item}' is not of the form key=value")
-        apply_override(cfg, key.strip(), raw.strip(), pending)
+        named.append(apply_override(cfg, key.strip(), raw.strip(), pending))
     if method is not None:
         cfg.method.name = method
     if seed is not None:
         cfg.train.seed = seed
     _resolve_method_options(cfg, pending)
     validate(cfg)
+    if not inapplicable_ok:
+        refuse_inapplicable(cfg, [key for key in named if key])
     return cfg
 
 
@@ -500,8 +751,8 @@ def _resolve_method_options(cfg: Config, pending: list[tuple[str, Any, str, bool
     for name, value, prefix, from_text in pending:
         key = f"method.{name}"
         if name not in declared:
-            candidates = [f"method.{n}" for n in declared] + [f"method.{f.name}" for f in fields(MethodConfig)
-                                                              if f.name != "options"]
+            candidates = [f"method.{n}" for n in declared] + [k for k, _, _ in setting_fields()
+                                                              if k.startswith("method.")]
             own = (f"method '{cfg.method.name}' declares {', '.join(f'method.{n}' for n in declared)}; "
                    if declared else "")
             raise ConfigError(f"{prefix}{_unknown(key, candidates, own)}")
@@ -509,45 +760,40 @@ def _resolve_method_options(cfg: Config, pending: list[tuple[str, Any, str, bool
         cfg.method.options[name] = _parse(value, kind, key) if from_text else _coerce(value, kind, key)
 
 
-def _all_keys(cfg: Config) -> dict[str, list[str]]:
-    """Map each leaf key name to the sections that define it."""
-    index: dict[str, list[str]] = {}
-    for section in SECTIONS:
-        for f in fields(getattr(cfg, section)):
-            index.setdefault(f.name, []).append(section)
-    return index
-
-
-def apply_override(cfg: Config, key: str, raw: str, pending: list | None = None) -> None:
-    """Set one setting from its string form, converting to the field's declared type. With ``pending``, an
-    unknown ``method.NAME`` is kept there for the chosen method's own settings (:func:`load_config`)."""
-    if "." in key:
-        section, _, name = key.partition(".")
-        if section not in SECTIONS:
-            raise ConfigError(f"unknown section '{section}' in '{key}'; valid sections: {', '.join(SECTIONS)}")
-    else:
-        owners = _all_keys(cfg).get(key)
+def apply_override(cfg: Config, key: str, raw: str, pending: list | None = None) -> str | None:
+    """Set one setting from its string form, converting to the field's declared type, and return its full
+    key. With ``pending``, an unknown ``method.NAME`` is kept there for the chosen method's own settings
+    (:func:`load_config`; None is returned for it)."""
+    leaves = {k: (owner, f) for k, owner, f in setting_fields(cfg)}
+    if "." not in key:
+        owners = [k for k in leaves if k.rpartition(".")[2] == key]
         if not owners:
-            raise ConfigError(f"unknown setting '{key}'; run `drago list --settings` for the valid keys")
+            raise ConfigError(_renamed_message(key, raw)
+                              or f"unknown setting '{key}'; run `drago list --settings` for the valid keys")
         if len(owners) > 1:
-            raise ConfigError(f"setting '{key}' is ambiguous; write one of: "
-                              + ", ".join(f"{s}.{key}" for s in owners))
-        section, name = owners[0], key
-    target = getattr(cfg, section)
-    declared = {f.name: f for f in fields(target)}
-    if name not in declared and section == "method" and pending is not None:
-        pending.append((name, raw, "", True))
-        return
-    if name not in declared:
-        raise ConfigError(f"unknown setting '{section}.{name}'; valid keys in {section}: "
-                          + ", ".join(declared))
-    value = _parse(raw, declared[name].type, f"{section}.{name}")
-    setattr(target, name, value)
+            raise ConfigError(f"setting '{key}' is ambiguous; write one of: " + ", ".join(owners))
+        key = owners[0]
+    section = key.partition(".")[0]
+    if section not in SECTIONS:
+        raise ConfigError(f"unknown section '{section}' in '{key}'; valid sections: {', '.join(SECTIONS)}")
+    if key in RENAMED:
+        raise ConfigError(_renamed_message(key, raw))
+    if key not in leaves:
+        if key in SECTION_CLASSES:
+            raise ConfigError(f"'{key}' is a section, not a setting; set one of its keys, e.g. "
+                              f"{next(k for k in leaves if k.startswith(key + '.'))}=...")
+        if section == "method" and key.count(".") == 1 and pending is not None:
+            pending.append((key.partition(".")[2], raw, "", True))
+            return None
+        raise ConfigError(_unknown(key, list(leaves)))
+    owner, f = leaves[key]
+    setattr(owner, f.name, _parse(raw, _types(type(owner))[f.name], key))
+    return key
 
 
 def _merge(cfg: Config, data: dict[str, Any], where: Where | str, pending: list | None = None) -> None:
-    """Set every ``section: {key: value}`` of ``data``; errors start with ``where(section, key)``. With
-    ``pending``, an unknown method setting is kept there (:func:`load_config`)."""
+    """Set every ``section: {key: value}`` of ``data`` (subsections nested the same way); errors start with
+    ``where(section, key)``. With ``pending``, an unknown method setting is kept there (:func:`load_config`)."""
     prefix = where if callable(where) else (lambda section, key, text=where: text)
     for section, values in data.items():
         if section == "preset":
@@ -555,27 +801,32 @@ def _merge(cfg: Config, data: dict[str, Any], where: Where | str, pending: list 
             continue
         if section not in SECTIONS:
             raise ConfigError(f"{prefix(section, None)}unknown section '{section}'; valid sections: {', '.join(SECTIONS)}")
-        if not isinstance(values, dict):
-            raise ConfigError(f"{prefix(section, None)}section '{section}' must be a mapping of settings")
-        target = getattr(cfg, section)
-        declared = {f.name: f for f in fields(target)}
-        for name, value in values.items():
-            if name not in declared and section == "method" and pending is not None:
-                pending.append((name, value, prefix(section, name), False))
-                continue
-            if name not in declared:
-                raise ConfigError(f"{prefix(section, name)}unknown setting '{section}.{name}'; valid keys in "
-                                  f"{section}: " + ", ".join(declared))
-            try:
-                setattr(target, name, _coerce(value, declared[name].type, f"{section}.{name}"))
-            except ConfigError as err:
-                raise ConfigError(f"{prefix(section, name)}{err}") from None
+        _merge_section(getattr(cfg, section), section, values, lambda key, s=section: prefix(s, key), pending)
 
 
-def _resolve_type(annotation: Any) -> Any:
-    if isinstance(annotation, str):
-        return eval(annotation, {**vars(typing), **vars(types), "tuple": tuple})  # noqa: S307 (our own annotations)
-    return annotation
+def _merge_section(target: Any, path: str, values: Any, prefix: Callable[[str | None], str],
+                   pending: list | None) -> None:
+    if not isinstance(values, dict):
+        raise ConfigError(f"{prefix(None)}section '{path}' must be a mapping of settings")
+    declared = {f.name: f for f in fields(target)}
+    for name, value in values.items():
+        key = f"{path}.{name}"
+        first = key.partition(".")[2]  # the key's path inside its section: the line a preset's message points at
+        if name in declared and _subsection(target, name):
+            _merge_section(getattr(target, name), key, value, prefix, pending)
+            continue
+        if name not in declared and path == "method" and pending is not None and key not in RENAMED:
+            pending.append((name, value, prefix(first), False))
+            continue
+        if name not in declared:
+            renamed = _renamed_message(key)
+            if renamed:
+                raise ConfigError(f"{prefix(first)}{renamed}")
+            raise ConfigError(f"{prefix(first)}unknown setting '{key}'; valid keys in {path}: " + ", ".join(declared))
+        try:
+            setattr(target, name, _coerce(value, _types(type(target))[name], key))
+        except ConfigError as err:
+            raise ConfigError(f"{prefix(first)}{err}") from None
 
 
 def _parse(raw: str, annotation: Any, key: str) -> Any:
@@ -600,8 +851,7 @@ def setting_value(value: Any, kind: Any, key: str) -> Any:
     return _coerce(value, kind, key)
 
 
-def _coerce(value: Any, annotation: Any, key: str) -> Any:
-    kind = _resolve_type(annotation)
+def _coerce(value: Any, kind: Any, key: str) -> Any:
     origin = typing.get_origin(kind)
     args = typing.get_args(kind)
     if origin in (typing.Union, types.UnionType):
@@ -643,48 +893,50 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
 # ---- validation -------------------------------------------------------------------------------------
 # Range rules as data: each key once, each rule with one message.
 POSITIVE = (
-    "env.episode_length", "env.action_repeat", "agent.mlp_dim", "agent.horizon", "agent.batch_size",
-    "agent.iterations", "agent.num_samples", "agent.num_elites", "agent.update_freq", "agent.horizon_schedule_steps",
-    "agent.std_schedule_steps", "agent.lr", "agent.lr_schedule_steps", "agent.pets_members", "agent.pets_hidden",
-    "agent.pets_layers", "agent.pets_particles", "agent.pets_horizon", "agent.pets_iterations", "agent.pets_population",
-    "agent.pets_elites", "train.steps_per_task", "train.eval_freq",
-    "train.eval_episodes", "train.checkpoint_freq", "method.vae_hidden_dim", "method.vae_latent_dim",
-    "method.rehearsal_freq", "method.rehearsal_batch", "method.ewc_fisher_batches", "method.replay_capacity",
+    "env.episode_length", "env.action_repeat", "agent.lr", "agent.batch_size",
+    "agent.tdmpc.mlp_dim", "agent.tdmpc.horizon", "agent.tdmpc.iterations", "agent.tdmpc.num_samples",
+    "agent.tdmpc.num_elites", "agent.tdmpc.update_freq", "agent.tdmpc.horizon_schedule_steps",
+    "agent.tdmpc.std_schedule_steps", "agent.tdmpc.lr_schedule_steps", "agent.pets.members", "agent.pets.hidden",
+    "agent.pets.layers", "agent.pets.particles", "agent.pets.horizon", "agent.pets.iterations",
+    "agent.pets.population", "agent.pets.elites", "train.steps_per_task", "train.eval_freq",
+    "train.eval_episodes", "train.checkpoint_freq", "method.vae.hidden_dim", "method.vae.latent_dim",
+    "method.rehearsal.freq", "method.rehearsal.batch", "method.ewc.fisher_batches", "method.replay.capacity",
     "transfer.few_shot_episodes",
 )
 POSITIVE_OR_UNSET = ("train.learner_steps_per_task", "train.reviewer_steps_per_task", "train.eval_every_episodes",
                      "transfer.after")
 NON_NEGATIVE = (
     "agent.seed_steps", "train.threads", "train.heldout_episodes", "transfer.pre_rollout_steps",
-    "method.vae_recon_coef", "method.vae_kl_coef", "method.rehearsal_lambda", "method.cost_coef", "method.ewc_coef",
-    "method.curiosity_coef",
+    "method.vae.recon_coef", "method.vae.kl_coef", "method.rehearsal.weight", "method.reviewer.cost_coef",
+    "method.ewc.coef", "method.curiosity.coef",
 )
 NON_NEGATIVE_OR_UNSET = ("train.updates_per_episode",)
-UNIT_INTERVAL = ("agent.discount", "agent.rho", "agent.tau", "agent.momentum", "agent.mixture_coef",
-                 "method.threshold_momentum")
+UNIT_INTERVAL = ("agent.tdmpc.discount", "agent.tdmpc.rho", "agent.tdmpc.tau", "agent.tdmpc.momentum",
+                 "agent.tdmpc.mixture_coef", "agent.pets.momentum", "method.reviewer.threshold_momentum")
 CHOICES: dict[str, tuple[str, ...]] = {
     "agent.kind": AGENT_KINDS,
-    "agent.elite_selection": ELITE_SELECTIONS,
     "agent.schedule_clock": ("task", "learner"),
-    "agent.pets_propagation": ("tsinf", "ts1"),
-    "agent.pets_reward": ("learned", "known"),
-    "agent.precision": PRECISIONS,
-    "agent.compile": COMPILE_CHOICES,
-    "method.vae_data": ("combined", "learner"),
-    "method.rehearsal_mode": ("separate", "joint"),
-    "method.rehearsal_target": ("pre_squash", "post_squash"),
-    "method.intrinsic_reward": INTRINSIC_REWARDS,
+    "agent.tdmpc.elite_selection": ELITE_SELECTIONS,
+    "agent.tdmpc.precision": PRECISIONS,
+    "agent.tdmpc.compile": COMPILE_CHOICES,
+    "agent.pets.propagation": ("tsinf", "ts1"),
+    "agent.pets.reward": ("learned", "known"),
+    "method.vae.data": ("combined", "learner"),
+    "method.rehearsal.mode": ("separate", "joint"),
+    "method.rehearsal.target": ("pre_squash", "post_squash"),
+    "method.reviewer.intrinsic_reward": INTRINSIC_REWARDS,
     "transfer.pre_rollout_planning": PRE_ROLLOUT_PLANNING,
     "train.wandb": ("off", "online", "offline"),
 }
 #: Choice settings where YAML reads a word as a boolean (off, no, false: False; on, yes, true: True): the choice
 #: each boolean stands for.
-BOOLEAN_WORDS: dict[str, tuple[str, str]] = {"train.wandb": ("off", "online"), "agent.compile": ("false", "true")}
+BOOLEAN_WORDS: dict[str, tuple[str, str]] = {"train.wandb": ("off", "online"),
+                                             "agent.tdmpc.compile": ("false", "true")}
 
 
 def _get(cfg: Config, key: str) -> Any:
-    section, _, name = key.partition(".")
-    return getattr(getattr(cfg, section), name)
+    path, _, name = key.rpartition(".")
+    return getattr(_section_at(cfg, path), name)
 
 
 def _check_ranges(cfg: Config) -> None:
@@ -738,34 +990,30 @@ def _check_domain_and_tasks(cfg: Config) -> None:
 
 def _check_relations(cfg: Config) -> None:
     """Rules that tie two settings together."""
-    agent, train = cfg.agent, cfg.train
-    if agent.lr_final is not None and not 0 < agent.lr_final <= agent.lr:
-        raise ConfigError(f"setting 'agent.lr_final' must lie in (0, agent.lr={agent.lr}], got {agent.lr_final}; "
-                          "leave it unset (null) for a constant lr")
-    if agent.pets_elites > agent.pets_population:
-        raise ConfigError(f"agent.pets_elites ({agent.pets_elites}) must not exceed agent.pets_population "
-                          f"({agent.pets_population})")
-    if agent.kind == "pets":
-        if agent.pets_reward == "known" and get_domain(cfg.env.domain).known_reward is None:
-            raise ConfigError(f"agent.pets_reward=known needs a reward known as a function of observations, as the "
+    agent, tdmpc, pets, train = cfg.agent, cfg.agent.tdmpc, cfg.agent.pets, cfg.train
+    if tdmpc.lr_final is not None and not 0 < tdmpc.lr_final <= agent.lr:
+        raise ConfigError(f"setting 'agent.tdmpc.lr_final' must lie in (0, agent.lr={agent.lr}], got "
+                          f"{tdmpc.lr_final}; leave it unset (null) for a constant lr")
+    if pets.elites > pets.population:
+        raise ConfigError(f"agent.pets.elites ({pets.elites}) must not exceed agent.pets.population "
+                          f"({pets.population})")
+    if tdmpc.num_elites > tdmpc.num_samples:
+        raise ConfigError(f"agent.tdmpc.num_elites ({tdmpc.num_elites}) must not exceed agent.tdmpc.num_samples "
+                          f"({tdmpc.num_samples})")
+    if applies("agent.pets.reward", agent.kind, cfg.method.name):
+        if pets.reward == "known" and get_domain(cfg.env.domain).known_reward is None:
+            raise ConfigError(f"agent.pets.reward=known needs a reward known as a function of observations, as the "
                               f"grid's (env.domain=minigrid); {cfg.env.domain} declares none: use "
-                              "agent.pets_reward=learned")
-        for key, value, plain in (("precision", agent.precision, "float32"), ("compile", agent.compile, "false")):
-            if value not in ("auto", plain):
-                raise ConfigError(f"setting 'agent.{key}' applies to TD-MPC; agent.kind=pets runs in float32, "
-                                  f"uncompiled: leave agent.{key} at auto or {plain}")
-    if agent.num_elites > agent.num_samples:
-        raise ConfigError(f"agent.num_elites ({agent.num_elites}) must not exceed agent.num_samples "
-                          f"({agent.num_samples})")
-    if cfg.env.episode_length <= agent.horizon:
-        raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must exceed agent.horizon "
-                          f"({agent.horizon}) so that training sequences fit inside an episode")
+                              "agent.pets.reward=learned")
+    if applies("agent.tdmpc.horizon", agent.kind, cfg.method.name) and cfg.env.episode_length <= tdmpc.horizon:
+        raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must exceed agent.tdmpc.horizon "
+                          f"({tdmpc.horizon}) so that training sequences fit inside an episode")
     probs = agent.random_action_probs
     if probs and (min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6):
         raise ConfigError(f"agent.random_action_probs must be non-negative numbers summing to 1, got {probs}")
-    if not 0.0 <= cfg.method.replay_fraction < 1.0:
+    if not 0.0 <= cfg.method.replay.fraction < 1.0:
         # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
-        raise ConfigError(f"setting 'method.replay_fraction' must lie in [0, 1), got {cfg.method.replay_fraction}")
+        raise ConfigError(f"setting 'method.replay.fraction' must lie in [0, 1), got {cfg.method.replay.fraction}")
     if cfg.transfer.reward not in (None, "dense", "sparse"):
         raise ConfigError(f"unknown transfer.reward '{cfg.transfer.reward}'; valid choices: dense, sparse, "
                           "or leave it unset for each task's own")
@@ -779,22 +1027,18 @@ def _check_types(cfg: Config) -> None:
     to what a preset or an override would have been converted to."""
     if not isinstance(cfg, Config):
         raise ConfigError(f"expected a drago Config (drago.load_config(...)), got {type(cfg).__name__}")
-    for section in SECTIONS:
-        target = getattr(cfg, section)
-        for f in fields(target):
-            value, key = getattr(target, f.name), f"{section}.{f.name}"
-            if isinstance(value, str) and _resolve_type(f.type) is not str and not (
-                    typing.get_origin(_resolve_type(f.type)) in (typing.Union, types.UnionType)
-                    and str in typing.get_args(_resolve_type(f.type))):
-                raise ConfigError(f"setting '{key}' expects {_type_words(f.type)}, got the string {value!r}; "
-                                  "set it to a value of that type")
-            # Normalised in place (a list where a tuple is declared, 100.0 for an integer): the same setting, and
-            # the form a run's config.yaml and a record's protocol hold.
-            object.__setattr__(target, f.name, _coerce(value, f.type, key))
+    for key, target, f in setting_fields(cfg):
+        kind, value = _types(type(target))[f.name], getattr(target, f.name)
+        if isinstance(value, str) and kind is not str and not (
+                typing.get_origin(kind) in (typing.Union, types.UnionType) and str in typing.get_args(kind)):
+            raise ConfigError(f"setting '{key}' expects {_type_words(kind)}, got the string {value!r}; "
+                              "set it to a value of that type")
+        # Normalised in place (a list where a tuple is declared, 100.0 for an integer): the same setting, and
+        # the form a run's config.yaml and a record's protocol hold.
+        object.__setattr__(target, f.name, _coerce(value, kind, key))
 
 
-def _type_words(annotation: Any) -> str:
-    kind = _resolve_type(annotation)
+def _type_words(kind: Any) -> str:
     args = [a for a in typing.get_args(kind) if a is not type(None)] or [kind]
     words = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
     return " or ".join(words.get(a, "a list" if typing.get_origin(a) is tuple else str(a)) for a in args)
@@ -823,15 +1067,18 @@ def _to_plain(value: Any) -> Any:
 def describe_settings(plugins: bool = False) -> list[tuple[str, str, Any]]:
     """(key, type, default) for every setting, for `drago list --settings`; with ``plugins``, also the
     settings plug-in methods declare (type ``KIND, METHOD only``)."""
-    cfg = Config()
     rows = []
-    for section in SECTIONS:
-        for f in fields(getattr(cfg, section)):
-            type_name = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
-            rows.append((f"{section}.{f.name}", str(type_name), getattr(getattr(cfg, section), f.name)))
+    for key, target, f in setting_fields():
+        kind = _types(type(target))[f.name]
+        rows.append((key, _type_name(kind), getattr(target, f.name)))
     if plugins:
         load_method_plugins()
         for method, declared in METHOD_SETTINGS.items():
             rows += [(f"method.{name}", f"{setting.kind.__name__}, {method} only", setting.default)
                      for name, setting in declared.items()]
     return rows
+
+
+def _type_name(kind: Any) -> str:
+    """A declared type as written in the source: ``int``, ``float | None``, ``tuple[str, ...]``."""
+    return getattr(kind, "__name__", None) if typing.get_origin(kind) is None else str(kind).replace("typing.", "")

@@ -93,8 +93,7 @@ def setting_descriptions() -> dict[str, str]:
     import drago.config as config
 
     out = {}
-    for section, cls in zip(config.SECTIONS, (config.EnvConfig, config.AgentConfig, config.TrainConfig,
-                                              config.MethodConfig, config.TransferConfig)):
+    for section, cls in config.SECTION_CLASSES.items():
         out.update({f"{section}.{doc.name}": doc.description for doc in field_docs(cls)})
     return out
 

@@ -45,7 +45,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from drago.config import Config, ConfigError, load_config
+from drago.config import Config, ConfigError, load_config, overrides_for, unread_overrides
 from drago.continual import check_method, get_method
 from drago.continual.base import Budget
 from drago.envs import get_domain
@@ -182,10 +182,15 @@ class StudyPlan:
     transfer_few_shot_episodes: int | None = None  # None: 20, or the transfer's episodes if fewer
     own_cases: bool = False  # the cases were chosen (--cases), not the paper's
     records: Path | None = None  # the records folder, if units are recorded
+    agent_kind: str = "tdmpc"  # the runs' agent kind, which decides the agent settings each run reads
     runs: list[Job] = field(default_factory=list)
     transfers: list[Job] = field(default_factory=list)
     record_jobs: list[Job] = field(default_factory=list)  # run locally; a SLURM study's report job records
     notes: list[str] = field(default_factory=list)
+
+    def overrides_of(self, method: str) -> list[str]:
+        """The study's overrides that a run of ``method`` reads (each method reads its own sections)."""
+        return overrides_for(self.overrides, self.agent_kind, method)
 
     @property
     def report_dir(self) -> Path:
@@ -301,7 +306,10 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     if not _has_threads(overrides):
         overrides.append(f"train.threads={max(1, cores // jobs)}")
     out = Path(out) if out is not None else default_study_dir(preset)
-    base = check_method(load_config(preset, overrides, method=methods[0], seed=seeds[0]))
+    base = check_method(load_config(preset, overrides, method=methods[0], seed=seeds[0], inapplicable_ok=True))
+    unread = unread_overrides(overrides, base.agent.kind, methods)
+    if unread:
+        raise StudyError(unread)
     if transfer_reward is not None and not get_domain(base.env.domain).dense_reward:
         raise StudyError(f"--transfer-reward applies to the grid only (a dense and a sparse reward); leave it out "
                          f"for {base.env.domain}")
@@ -319,7 +327,7 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
                      transfer_episodes=transfer_episodes, transfer_eval_every=transfer_eval_every, cases=kept,
                      budget=_budget_line(base, methods), transfer_reward=transfer_reward,
                      transfer_few_shot_episodes=transfer_few_shot_episodes, own_cases=bool(cases) and not paper,
-                     records=None if records is None else Path(records))
+                     records=None if records is None else Path(records), agent_kind=base.agent.kind)
     if transfers and not cases:
         plan.notes.append(f"domain {base.env.domain} declares no transfer cases: none planned")
     left_out = [f"{task} after {after}" for task, after in cases if after > n_tasks]
@@ -332,14 +340,15 @@ def plan_study(preset: str = DEFAULT_PRESET, methods: Sequence[str] = DEFAULT_ME
     logs = out / LOG_FOLDER
     for seed in seeds:
         for method in methods:
-            cfg = check_method(load_config(preset, overrides, method=method, seed=seed))
+            own = plan.overrides_of(method)
+            cfg = check_method(load_config(preset, own, method=method, seed=seed))
             run_dir = out / method / f"seed{seed}"
             label = f"{method} seed{seed}"
             if plan.records is not None and _plan_recorded_unit(plan, cfg, run_dir, label, logs, kept):
                 continue
             state, existing = _state(run_dir, lambda cfg=cfg: cfg, "run", check_settings)
             argv = {START: ["train", preset, "--method", method, "--seed", str(seed), "--out", str(run_dir),
-                            "--no-progress", *overrides],
+                            "--no-progress", *own],
                     RESUME: ["resume", str(run_dir), "--no-progress"], DONE: []}[state]
             source_cfg = existing or cfg
             run = Job(label, "run", method, seed, run_dir, state, argv, logs / f"{method}-seed{seed}.log",

@@ -621,7 +621,7 @@ def _start_argv(job: Job, plan: StudyPlan) -> list[str]:
     """The command that starts ``job`` from nothing (a job planned as resume may find its directory gone)."""
     if job.kind == "run":
         return ["train", plan.preset, "--method", job.method, "--seed", str(job.seed), "--out", str(job.directory),
-                "--no-progress", *plan.overrides]
+                "--no-progress", *plan.overrides_of(job.method)]
     task, after = job.case or ("", 0)
     return transfer_argv(job.directory.parent.parent, task, after, plan)
 
@@ -741,7 +741,7 @@ def _checkpoint_freq(plan: StudyPlan) -> int | None:
     from drago.config import ConfigError, load_config
 
     try:
-        cfg = load_config(plan.preset, plan.overrides, method=plan.methods[0], seed=plan.seeds[0])
+        cfg = load_config(plan.preset, plan.overrides_of(plan.methods[0]), method=plan.methods[0], seed=plan.seeds[0])
         return cfg.train.checkpoint_freq
     except ConfigError:
         return None

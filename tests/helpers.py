@@ -144,3 +144,15 @@ def sigkill_in_task_two(train_args: list[str], run: Path, cwd: Path, wait_s: flo
                 proc.kill()
             proc.wait()
     return proc.returncode
+
+
+def tdmpc_config(**settings: Any):
+    """An ``AgentConfig`` of kind tdmpc from flat keyword settings: the shared ones (lr, batch_size, ...) on the
+    agent, every other one in its ``tdmpc`` section (``tdmpc_config(mlp_dim=64, lr=3e-4)``)."""
+    from dataclasses import fields
+
+    from drago.config import AgentConfig, TdmpcConfig
+
+    shared = {f.name for f in fields(AgentConfig)}
+    return AgentConfig(**{k: v for k, v in settings.items() if k in shared},
+                       tdmpc=TdmpcConfig(**{k: v for k, v in settings.items() if k not in shared}))

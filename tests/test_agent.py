@@ -19,7 +19,7 @@ from drago.agent.losses import model_losses, policy_loss
 from drago.agent.networks import TaskHeads, WorldModel, autocast
 from drago.agent.planner import PlanSettings, plan_continuous, plan_discrete, trajectory_returns
 from drago.config import AgentConfig
-from helpers import filled_buffer
+from helpers import tdmpc_config, filled_buffer
 
 OBS, ACT, B, H = 3, 3, 4, 3
 RHO, GAMMA = 0.5, 0.99
@@ -56,7 +56,7 @@ def make_batch(seed: int = 2, weights: list[float] | None = None) -> Batch:
 
 
 def losses_for(wm, heads, batch, **kw):
-    c = AgentConfig()
+    c = AgentConfig().tdmpc
     args = dict(horizon=H, rho=RHO, discount=GAMMA, policy_std=0.05, consistency_coef=c.consistency_coef,
                 reward_coef=c.reward_coef, value_coef=c.value_coef, first_step_qr_only=False,
                 train_world_model=True)
@@ -104,7 +104,7 @@ def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
 # 1. Closed forms of the losses (paper §2; docs: Design, the agent zero last layers, paper §2; docs: Design, the agent)
 # ---------------------------------------------------------------------------------------------------
 def test_loss_coefficients_are_the_spec_defaults():
-    c = AgentConfig()
+    c = AgentConfig().tdmpc
     assert (c.consistency_coef, c.reward_coef, c.value_coef, c.rho, c.discount) == (2.0, 0.5, 0.1, 0.5, 0.99)
 
 
@@ -208,7 +208,7 @@ def test_learner_and_reviewer_priorities_at_init():
 
 
 def test_agent_update_reports_priorities_and_weighted_loss():
-    cfg = AgentConfig(mlp_dim=MLP, horizon=H, batch_size=B)
+    cfg = tdmpc_config(mlp_dim=MLP, horizon=H, batch_size=B)
     for reviewer in (False, True):
         wm = make_world()
         agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True,
@@ -269,7 +269,7 @@ def test_policy_loss_closed_form_uses_all_h_plus_one_latents():
 
 def test_policy_step_does_not_move_critics_or_reward():
     """With the model and world optimizers at lr 0, an update may change the policy and nothing else."""
-    cfg = AgentConfig(mlp_dim=MLP, horizon=H, batch_size=B)
+    cfg = tdmpc_config(mlp_dim=MLP, horizon=H, batch_size=B)
     wm = make_world()
     agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)
     perturb_last_layers(agent.heads)  # non-zero critics: the policy loss has a gradient
@@ -278,7 +278,7 @@ def test_policy_step_does_not_move_critics_or_reward():
             group["lr"] = 0.0
     batch = make_batch()
     out = losses_for(wm, agent.heads, batch)
-    pi = policy_loss(agent.heads, out.latents, RHO, cfg.min_std)
+    pi = policy_loss(agent.heads, out.latents, RHO, cfg.tdmpc.min_std)
     assert _norm(_grads(pi, agent.heads.q)) > 0  # the policy loss does reach Q: it must be kept out
     q0, r0, p0, d0 = params(agent.heads.q), params(agent.heads.reward), params(agent.heads.policy), params(wm)
     torch.manual_seed(4)
@@ -293,7 +293,7 @@ def test_policy_step_does_not_move_critics_or_reward():
 # 4. Which parameters an update moves; target EMA
 # ---------------------------------------------------------------------------------------------------
 def _agent_with_offset_targets(tau: float = 0.25, update_freq: int = 3) -> Agent:
-    cfg = AgentConfig(mlp_dim=MLP, horizon=H, batch_size=B, tau=tau, update_freq=update_freq)
+    cfg = tdmpc_config(mlp_dim=MLP, horizon=H, batch_size=B, tau=tau, update_freq=update_freq)
     wm = make_world()
     agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)
     # Targets that differ from the online nets, so an EMA (or its absence) is visible.
@@ -536,7 +536,7 @@ def test_trajectory_returns_closed_form_and_reward_bonus(monkeypatch):
 # 7-8. Horizon schedule and seed-phase actions
 # ---------------------------------------------------------------------------------------------------
 def test_planning_horizon_schedule():
-    cfg = AgentConfig(mlp_dim=MLP, horizon=10, horizon_schedule_steps=1000)
+    cfg = tdmpc_config(mlp_dim=MLP, horizon=10, horizon_schedule_steps=1000)
     wm = make_world()
     agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), cfg, discrete=True)
     assert agent.planning_horizon(0) == 1
@@ -544,12 +544,12 @@ def test_planning_horizon_schedule():
     assert agent.planning_horizon(1000) == 10
     assert agent.planning_horizon(50_000) == 10
     assert agent.plan_settings(0).horizon == 1
-    assert AgentConfig().horizon_schedule_steps == 10_000 and AgentConfig().horizon == 10
+    assert AgentConfig().tdmpc.horizon_schedule_steps == 10_000 and AgentConfig().tdmpc.horizon == 10
 
 
 def test_random_grid_action_frequencies():
     wm = make_world()
-    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), AgentConfig(mlp_dim=MLP), discrete=True)
+    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), tdmpc_config(mlp_dim=MLP), discrete=True)
     rng = np.random.default_rng(0)
     draws = np.stack([agent.random_action(rng) for _ in range(6000)])
     assert draws.shape == (6000, 3)
@@ -561,7 +561,7 @@ def test_random_grid_action_frequencies():
 def test_random_continuous_action_is_uniform_in_box():
     torch.manual_seed(0)
     wm = WorldModel(OBS, 2, MLP, use_crelu=False, squash=False)
-    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), AgentConfig(mlp_dim=MLP), discrete=False)
+    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), tdmpc_config(mlp_dim=MLP), discrete=False)
     rng = np.random.default_rng(0)
     draws = np.stack([agent.random_action(rng) for _ in range(2000)])
     assert draws.shape == (2000, 2) and draws.min() >= -1 and draws.max() <= 1
@@ -573,7 +573,7 @@ def test_random_continuous_action_is_uniform_in_box():
 # ---------------------------------------------------------------------------------------------------
 def _twin_agents(reviewer: bool = False) -> tuple[Agent, Agent]:
     """Two identical agents (same world model weights, same heads), each with its own world model."""
-    cfg = AgentConfig(mlp_dim=MLP, horizon=H, batch_size=B)
+    cfg = tdmpc_config(mlp_dim=MLP, horizon=H, batch_size=B)
     out = []
     for _ in range(2):
         wm = make_world()
@@ -630,17 +630,17 @@ def test_output_layers_stay_float32_under_bfloat16_autocast():
 def test_precision_setting_is_validated():
     from drago.config import ConfigError, load_config
 
-    assert load_config("smoke").agent.precision == "auto"  # a run resolves it (tests/test_speed.py)
-    assert load_config("smoke", ["agent.precision=bfloat16"]).agent.precision == "bfloat16"
-    with pytest.raises(ConfigError, match="unknown agent.precision 'float16'; valid choices: auto, float32, bfloat16"):
-        load_config("smoke", ["agent.precision=float16"])
+    assert load_config("smoke").agent.tdmpc.precision == "auto"  # a run resolves it (tests/test_speed.py)
+    assert load_config("smoke", ["agent.tdmpc.precision=bfloat16"]).agent.tdmpc.precision == "bfloat16"
+    with pytest.raises(ConfigError, match="unknown agent.tdmpc.precision 'float16'; valid choices: auto, float32, bfloat16"):
+        load_config("smoke", ["agent.tdmpc.precision=float16"])
 
 
 def _fit(precision: str, steps: int = 250, fast_tanh: bool = False) -> dict[str, float]:
     """Fit one agent to a fixed batch whose rewards and values sit near 300 (the grid's Q scale) and vary
     by a few units: in bfloat16 those outputs would be rounded to multiples of 2."""
     torch.manual_seed(0)
-    cfg = AgentConfig(mlp_dim=64, horizon=H, batch_size=64, discount=0.0, update_freq=1, precision=precision,
+    cfg = tdmpc_config(mlp_dim=64, horizon=H, batch_size=64, discount=0.0, update_freq=1, precision=precision,
                       fast_tanh=fast_tanh)
     wm = WorldModel(OBS, ACT, 64, use_crelu=True, squash=True)
     agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)
@@ -695,10 +695,10 @@ def test_fast_tanh_matches_tanh_and_its_gradient():
 def test_fast_tanh_reaches_the_heads_and_learns_like_tanh():
     from drago.config import load_config
 
-    assert load_config("smoke").agent.fast_tanh is True  # the default; false gives torch.tanh's own bits
-    assert load_config("smoke", ["agent.fast_tanh=false"]).agent.fast_tanh is False
+    assert load_config("smoke").agent.tdmpc.fast_tanh is True  # the default; false gives torch.tanh's own bits
+    assert load_config("smoke", ["agent.tdmpc.fast_tanh=false"]).agent.tdmpc.fast_tanh is False
     wm = make_world()
-    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), AgentConfig(mlp_dim=MLP, fast_tanh=True),
+    agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), tdmpc_config(mlp_dim=MLP, fast_tanh=True),
                   discrete=False)
     exact = make_heads(discrete=False)
     exact.load_state_dict(agent.heads.state_dict())
@@ -752,14 +752,14 @@ def test_hot_path_never_reads_tensors_on_the_host(no_host_reads):
 
 @pytest.mark.experiment
 def test_compiled_agent_trains_on_the_smoke_preset(tmp_path):
-    """agent.compile=true: torch.compile of the losses and the planner step (over a minute on a CPU)."""
+    """agent.tdmpc.compile=true: torch.compile of the losses and the planner step (over a minute on a CPU)."""
     import csv
 
     from drago import cli
 
     out = tmp_path / "run"
     assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
-                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.compile=true",
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.tdmpc.compile=true",
                      "train.eval_episodes=3"]) == 0  # evaluation plans 3 observations at once
     rows = [r for r in csv.DictReader((out / "train.csv").open()) if r["reviewer_value_loss"]]
     assert rows
@@ -778,7 +778,7 @@ def test_compiled_agent_trains_on_the_smoke_preset(tmp_path):
 def test_lr_decay_sets_the_size_of_every_optimizer_step(lr_final, step, expected_lr):
     # Adam's first step moves every parameter with a nonzero gradient by lr (to within eps): the step size
     # shows the lr in force for the world model, the critics and reward, and the policy alike.
-    cfg = AgentConfig(mlp_dim=MLP, horizon=H, batch_size=B, lr=1e-3, lr_final=lr_final, lr_schedule_steps=10_000,
+    cfg = tdmpc_config(mlp_dim=MLP, horizon=H, batch_size=B, lr=1e-3, lr_final=lr_final, lr_schedule_steps=10_000,
                       update_freq=10 ** 9)
     wm = make_world()
     agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)
@@ -794,6 +794,6 @@ def test_lr_decay_sets_the_size_of_every_optimizer_step(lr_final, step, expected
 
 def test_lr_final_must_not_exceed_lr():
     from drago.config import ConfigError, load_config
-    with pytest.raises(ConfigError, match="agent.lr_final"):
-        load_config("smoke", overrides=["agent.lr_final=1e-2"])
-    assert load_config("smoke", overrides=["agent.lr_final=1e-4"]).agent.lr_final == 1e-4
+    with pytest.raises(ConfigError, match="agent.tdmpc.lr_final"):
+        load_config("smoke", overrides=["agent.tdmpc.lr_final=1e-2"])
+    assert load_config("smoke", overrides=["agent.tdmpc.lr_final=1e-4"]).agent.tdmpc.lr_final == 1e-4

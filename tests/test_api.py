@@ -30,24 +30,27 @@ def test_a_preset_file_builds_on_a_packaged_preset(tmp_path):
         env:
           tasks: [room1, room2]
         agent:
-          mlp_dim: 48
+          tdmpc:
+            mlp_dim: 48
         """)
     cfg = api.load_config(str(path), ["train.seed=3"], method="drago")
     smoke = api.load_config("smoke")
-    assert (cfg.preset, cfg.env.tasks, cfg.agent.mlp_dim, cfg.train.seed, cfg.method.name) == (
+    assert (cfg.preset, cfg.env.tasks, cfg.agent.tdmpc.mlp_dim, cfg.train.seed, cfg.method.name) == (
         "mine", ("room1", "room2"), 48, 3, "drago")
-    assert cfg.agent.horizon == smoke.agent.horizon and cfg.train.steps_per_task == smoke.train.steps_per_task
+    assert cfg.agent.tdmpc.horizon == smoke.agent.tdmpc.horizon and cfg.train.steps_per_task == smoke.train.steps_per_task
 
 
 def test_a_preset_file_may_build_on_another_file(tmp_path):
-    write(tmp_path / "base.yaml", "base: smoke\nagent:\n  mlp_dim: 24\n")
-    top = write(tmp_path / "top.yaml", "base: base.yaml\nagent:\n  horizon: 2\n")
+    write(tmp_path / "base.yaml", "base: smoke\nagent:\n  tdmpc:\n    mlp_dim: 24\n")
+    top = write(tmp_path / "top.yaml", "base: base.yaml\nagent:\n  tdmpc:\n    horizon: 2\n")
     cfg = api.load_config(str(top))
-    assert (cfg.agent.mlp_dim, cfg.agent.horizon) == (24, 2)
+    assert (cfg.agent.tdmpc.mlp_dim, cfg.agent.tdmpc.horizon) == (24, 2)
 
 
 @pytest.mark.parametrize("text, expected", [
-    ("base: smoke\nagent:\n  mlp_dim: 16\n  horizn: 3\n", ":4: unknown setting 'agent.horizn'"),
+    ("base: smoke\nagent:\n  tdmpc:\n    mlp_dim: 16\n    horizn: 3\n", ":5: unknown setting 'agent.tdmpc.horizn'"),
+    ("base: smoke\nagent:\n  seed_steps: 10\n  pets_horizon: 3\n",
+     ":4: setting 'agent.pets_horizon' was renamed; write agent.pets.horizon"),
     ("base: smoke\ntrain:\n  steps_per_task: lots\n", ":3: setting 'train.steps_per_task' expects an integer"),
     ("base: smoke\nagnet:\n  mlp_dim: 16\n", ":2: unknown section 'agnet'"),
     ("agent:\n  mlp_dim: [1\n", ":3: not valid YAML"),

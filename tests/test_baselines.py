@@ -318,11 +318,11 @@ def test_curiosity_bonus_raises_the_td_target_by_c_times_prediction_error():
 def make_task(cfg, index: int = 0, seed: int = 0) -> TaskState:
     spec = env_spec("minigrid")
     torch.manual_seed(seed)
-    model = WorldModel(spec.obs_dim, spec.action_dim, cfg.agent.mlp_dim, cfg.agent.use_crelu, squash=True)
+    model = WorldModel(spec.obs_dim, spec.action_dim, cfg.agent.tdmpc.mlp_dim, cfg.agent.tdmpc.use_crelu, squash=True)
     optimizer = torch.optim.Adam(model.dynamics.parameters(), lr=cfg.agent.lr)
     learner = Agent(model, optimizer, cfg.agent, discrete=True)
     L = cfg.env.episode_length
-    buffer = EpisodeReplay(2 * L, spec.obs_dim, spec.action_dim, cfg.agent.horizon, L)
+    buffer = EpisodeReplay(2 * L, spec.obs_dim, spec.action_dim, cfg.agent.tdmpc.horizon, L)
     rng = np.random.default_rng(seed)
     for _ in range(2):
         buffer.add_episode(rng.uniform(-1, 1, (L + 1, spec.obs_dim)), np.eye(3)[rng.integers(0, 3, L)],
@@ -345,11 +345,12 @@ def record_update(task: TaskState, monkeypatch) -> list[dict]:
 
 @pytest.fixture
 def smoke_cfg():
-    return load_config("smoke", ["train.tensorboard=false", "method.ewc_fisher_batches=3"])
+    # One config for several methods: each reads its own section.
+    return load_config("smoke", ["train.tensorboard=false", "method.ewc.fisher_batches=3"], inapplicable_ok=True)
 
 
 def test_curiosity_passes_its_coefficient_to_the_learner(smoke_cfg, monkeypatch):
-    smoke_cfg.method.curiosity_coef = 0.3
+    smoke_cfg.method.curiosity.coef = 0.3
     method, task = Curiosity(smoke_cfg, env_spec("minigrid"), torch.device("cpu")), make_task(smoke_cfg)
     calls = record_update(task, monkeypatch)
     metrics = method.gradient_step(task, 0)
@@ -378,7 +379,7 @@ def test_ewc_penalises_only_after_a_task_and_carries_fisher_and_anchor(smoke_cfg
     assert callable(calls[-1]["world_model_loss"]) and float(metrics["learner_world_model_extra_loss"]) == 0.0
     for u in range(1, 4):
         method.gradient_step(nxt, u)
-    expected = 0.5 * smoke_cfg.method.ewc_coef * ewc_penalty(nxt.world_model, [first["anchor"]], [first["fisher"]])
+    expected = 0.5 * smoke_cfg.method.ewc.coef * ewc_penalty(nxt.world_model, [first["anchor"]], [first["fisher"]])
     assert method.penalty(nxt.world_model).item() == pytest.approx(expected.item()) and expected.item() > 0
 
     # Accumulated Fisher, latest anchor.
@@ -418,7 +419,7 @@ def test_replay_mixes_old_rows_only_after_a_task_and_carries_the_reservoir(smoke
 # ---------------------------------------------------------------------------------------------------
 # End to end on the smoke preset
 # ---------------------------------------------------------------------------------------------------
-EXTRA = {"replay": ["method.replay_capacity=500"]}  # below 4 x 400 transitions: replacement happens
+EXTRA = {"replay": ["method.replay.capacity=500"]}  # below 4 x 400 transitions: replacement happens
 
 
 @pytest.fixture(scope="module")

@@ -104,7 +104,7 @@ def test_a_plug_in_domain_on_the_four_rooms_world_gets_the_grids_evaluations():
         assert not HeldoutRecorder.wanted(cfg)  # exact coverage, not sampled held-out sets
         assert paper_cases("my-rooms") == (("room2", 1),)
         assert task_optimum("my-rooms", "room1") == task_optimum("minigrid", "room1")
-        config_on("my-rooms", "agent.kind=pets", "agent.pets_reward=known")  # a planner may be told the reward
+        config_on("my-rooms", "agent.kind=pets", "agent.pets.reward=known")  # a planner may be told the reward
         with pytest.raises(ConfigError, match="must be 1 for the grid and other tabular domains"):
             config_on("my-rooms", "env.action_repeat=2")
 
@@ -116,8 +116,8 @@ def test_a_domain_that_declares_nothing_gets_none_of_it_in_one_line():
         assert not VisitationRecorder.wanted(cfg) and HeldoutRecorder.wanted(cfg)
         with pytest.raises(Exception, match="declares no transfer cases; domains with cases: minigrid"):
             paper_cases("my-rooms")
-        with pytest.raises(ConfigError, match="my-rooms declares none: use agent.pets_reward=learned") as err:
-            config_on("my-rooms", "agent.kind=pets", "agent.pets_reward=known")
+        with pytest.raises(ConfigError, match="my-rooms declares none: use agent.pets.reward=learned") as err:
+            config_on("my-rooms", "agent.kind=pets", "agent.pets.reward=known")
         assert len(str(err.value).splitlines()) == 1
 
 

@@ -8,15 +8,15 @@ import pytest
 import torch
 
 from drago.agent.networks import TaskHeads
-from drago.config import AgentConfig
 from drago.envs import task_optimum
 from drago.eval.components import (ComponentsError, component_errors, grid_probe, heads_return, optimal_q,
                                    rank_correlation,
                                    refit_heads)
 from drago.eval.costs import carried_bytes
 from drago.eval.zero_shot import true_dynamics
+from helpers import tdmpc_config
 
-CFG = AgentConfig(mlp_dim=64, horizon=5)
+CFG = tdmpc_config(mlp_dim=64, horizon=5)
 
 
 class TrueModel(torch.nn.Module):
@@ -43,8 +43,8 @@ class FrozenInPlace(TrueModel):
 
 
 def fraction(model, heads, task="room1") -> float:
-    probe = grid_probe(task, CFG.discount)
-    returns = heads_return(model, heads, probe.task, CFG.horizon, CFG.discount)
+    probe = grid_probe(task, CFG.tdmpc.discount)
+    returns = heads_return(model, heads, probe.task, CFG.tdmpc.horizon, CFG.tdmpc.discount)
     return float(returns.mean()) / task_optimum("minigrid", task)
 
 
@@ -52,22 +52,22 @@ def fraction(model, heads, task="room1") -> float:
 def learned_heads() -> TaskHeads:
     """Heads trained on room 1 over the true model (the refit from random weights): what "saved after k" holds."""
     torch.manual_seed(0)
-    return refit_heads(TrueModel(), TaskHeads(3, 3, CFG.mlp_dim, True), grid_probe("room1", CFG.discount), CFG)
+    return refit_heads(TrueModel(), TaskHeads(3, 3, CFG.tdmpc.mlp_dim, True), grid_probe("room1", CFG.tdmpc.discount), CFG)
 
 
 def test_the_probe_is_room_one_with_its_dp_values():
-    probe = grid_probe("room1", CFG.discount)
+    probe = grid_probe("room1", CFG.tdmpc.discount)
     assert len(probe.obs) == len(probe.states) * 3 and len(probe.states) % 4 == 0
     # The dense reward pays 3 on the goal cell and repeatedly while the agent stays there: Q* there is 3 / (1 - γ).
-    assert probe.q_star.max() == pytest.approx(3 / (1 - CFG.discount), rel=1e-6)
+    assert probe.q_star.max() == pytest.approx(3 / (1 - CFG.tdmpc.discount), rel=1e-6)
     # Bellman optimality holds on the probe rows: Q*(s, a) = r + γ max Q*(s', ·).
-    q = optimal_q("room1", CFG.discount)
+    q = optimal_q("room1", CFG.tdmpc.discount)
     from drago.eval.zero_shot import decode_obs, state_index
     following = state_index(decode_obs(torch.from_numpy(probe.next_obs))).numpy()
-    np.testing.assert_allclose(probe.q_star, probe.reward + CFG.discount * q[following].max(axis=1), atol=1e-6)
+    np.testing.assert_allclose(probe.q_star, probe.reward + CFG.tdmpc.discount * q[following].max(axis=1), atol=1e-6)
     assert 0 < probe.optimal.mean() < 1
     with pytest.raises(ComponentsError, match="training rooms"):
-        grid_probe("room1to2", CFG.discount)
+        grid_probe("room1to2", CFG.tdmpc.discount)
 
 
 def test_the_value_order_reads_the_critic_s_ranking_whatever_its_scale():
@@ -80,15 +80,15 @@ def test_the_value_order_reads_the_critic_s_ranking_whatever_its_scale():
 
 
 def test_a_perfect_model_scores_no_dynamics_error():
-    measures = component_errors(TrueModel(), None, grid_probe("room2", CFG.discount), CFG.horizon)
+    measures = component_errors(TrueModel(), None, grid_probe("room2", CFG.tdmpc.discount), CFG.tdmpc.horizon)
     assert measures == {"dynamics_1step": 1.0, "dynamics_hstep": 1.0}
-    broken = component_errors(FrozenInPlace(), None, grid_probe("room2", CFG.discount), CFG.horizon)
+    broken = component_errors(FrozenInPlace(), None, grid_probe("room2", CFG.tdmpc.discount), CFG.tdmpc.horizon)
     assert broken["dynamics_1step"] < 0.1 and broken["dynamics_hstep"] == 0.0
 
 
 @pytest.mark.slow
 def test_heads_that_fit_the_task_plan_well_over_a_perfect_model(learned_heads):
-    measures = component_errors(TrueModel(), learned_heads, grid_probe("room1", CFG.discount), CFG.horizon)
+    measures = component_errors(TrueModel(), learned_heads, grid_probe("room1", CFG.tdmpc.discount), CFG.tdmpc.horizon)
     assert measures["reward_error"] < 0.15 and measures["policy_agreement"] > 0.4
     assert fraction(TrueModel(), learned_heads) > 0.6
 
@@ -96,9 +96,9 @@ def test_heads_that_fit_the_task_plan_well_over_a_perfect_model(learned_heads):
 @pytest.mark.slow
 def test_corrupted_heads_are_recovered_by_the_refit_so_the_loss_is_the_heads(learned_heads):
     torch.manual_seed(1)
-    corrupted = TaskHeads(3, 3, CFG.mlp_dim, True)  # the model is perfect, the heads know nothing
+    corrupted = TaskHeads(3, 3, CFG.tdmpc.mlp_dim, True)  # the model is perfect, the heads know nothing
     saved, moved = fraction(TrueModel(), learned_heads), fraction(TrueModel(), corrupted)
-    refit = refit_heads(TrueModel(), corrupted, grid_probe("room1", CFG.discount), CFG, seed=2)
+    refit = refit_heads(TrueModel(), corrupted, grid_probe("room1", CFG.tdmpc.discount), CFG, seed=2)
     recovered = fraction(TrueModel(), refit)
     assert moved < 0.1 < saved
     assert recovered > 0.6, "a perfect model must support the task once the heads are refit"
@@ -109,7 +109,7 @@ def test_corrupted_dynamics_are_not_recovered_by_the_refit_so_the_loss_is_the_mo
     model = FrozenInPlace()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     moved = fraction(model, learned_heads)
-    refit = refit_heads(model, learned_heads, grid_probe("room1", CFG.discount), CFG, seed=2)
+    refit = refit_heads(model, learned_heads, grid_probe("room1", CFG.tdmpc.discount), CFG, seed=2)
     assert moved < 0.1 and fraction(model, refit) < 0.1
     assert all(torch.equal(v, before[k]) for k, v in model.state_dict().items())  # the refit trains heads only
 
@@ -135,8 +135,8 @@ def test_eval_components_writes_its_files_and_the_report_shows_them(tmp_path, ca
     from drago import cli
 
     tiny = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100",
-            "train.tensorboard=false", "agent.mlp_dim=16", "agent.batch_size=16", "agent.iterations=1",
-            "agent.num_samples=8", "agent.num_elites=2", "train.threads=1", "env.tasks=[room1,room2]"]
+            "train.tensorboard=false", "agent.tdmpc.mlp_dim=16", "agent.batch_size=16", "agent.tdmpc.iterations=1",
+            "agent.tdmpc.num_samples=8", "agent.tdmpc.num_elites=2", "train.threads=1", "env.tasks=[room1,room2]"]
     run = tmp_path / "run"
     assert cli.main(["train", "smoke", "--method", "replay", "--out", str(run), "--no-progress", *tiny]) == 0
     capsys.readouterr()

@@ -23,14 +23,14 @@ def test_a_value_of_the_wrong_type_is_refused_before_the_run_directory_exists(tm
 
 def test_a_value_out_of_range_is_refused_before_the_run_directory_exists(tmp_path):
     cfg = smoke()
-    cfg.agent.discount = 1.5
-    with pytest.raises(ConfigError, match="agent.discount"):
+    cfg.agent.tdmpc.discount = 1.5
+    with pytest.raises(ConfigError, match="agent.tdmpc.discount"):
         drago.train(cfg, out=tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("section, name, suggestion", [("train", "steps_per_taks", "train.steps_per_task"),
-                                                       ("agent", "mlp_dims", "agent.mlp_dim")])
+                                                       ("agent", "mlp_dims", "agent.tdmpc.mlp_dim")])
 def test_an_unknown_setting_is_refused_where_it_is_set(section, name, suggestion):
     cfg = smoke()
     with pytest.raises(ConfigError) as err:
@@ -89,7 +89,7 @@ def test_a_methods_own_settings_are_set_checked_and_listed(tmp_path):
         assert not (tmp_path / "bad").exists()
 
         class Clash(Continual):
-            settings = {"ewc_coef": MethodSetting(float, 1.0, "a built-in's name")}
+            settings = {"ewc": MethodSetting(float, 1.0, "a built-in section's name")}
 
         with pytest.raises(RegistryError, match="taken by a built-in setting"):
             drago.register_method("clash-test", Clash)

@@ -26,29 +26,29 @@ def test_load_smoke_preset_layers_on_its_bases():
     cfg = load_config("smoke")
     assert cfg.preset == "smoke"
     # From smoke.yaml itself.
-    assert (cfg.agent.mlp_dim, cfg.agent.horizon, cfg.agent.batch_size) == (32, 3, 32)
+    assert (cfg.agent.tdmpc.mlp_dim, cfg.agent.tdmpc.horizon, cfg.agent.batch_size) == (32, 3, 32)
     assert (cfg.train.steps_per_task, cfg.train.checkpoint_freq, cfg.train.threads) == (400, 200, 1)
     # Inherited from minigrid-cpu (not overridden by smoke) and from minigrid.
-    assert (cfg.agent.elite_selection, cfg.agent.temperature, cfg.agent.lr_final) == ("sample", 2.0, 1e-4)
-    assert cfg.agent.lr_schedule_steps == cfg.train.steps_per_task == 400
+    assert (cfg.agent.tdmpc.elite_selection, cfg.agent.tdmpc.temperature, cfg.agent.tdmpc.lr_final) == ("sample", 2.0, 1e-4)
+    assert cfg.agent.tdmpc.lr_schedule_steps == cfg.train.steps_per_task == 400
     assert cfg.env.tasks == ("room1", "room2", "room3", "room4")
     assert cfg.env.episode_length == 100
     # Untouched defaults (paper Appendix A.1).
-    assert (cfg.agent.rho, cfg.agent.tau, cfg.agent.discount) == (0.5, 0.01, 0.99)
+    assert (cfg.agent.tdmpc.rho, cfg.agent.tdmpc.tau, cfg.agent.tdmpc.discount) == (0.5, 0.01, 0.99)
     assert cfg.method.name == "continual"
 
 
 def test_minigrid_preset_is_the_paper_values():
     cfg = load_config("minigrid")
-    a = cfg.agent
-    assert (a.mlp_dim, a.horizon, a.batch_size, a.iterations, a.num_samples, a.num_elites) == (512, 10, 512, 6, 512, 64)
-    assert (a.update_freq, a.seed_steps, a.horizon_schedule_steps) == (40, 5000, 10_000)
+    a, t = cfg.agent, cfg.agent.tdmpc
+    assert (t.mlp_dim, t.horizon, a.batch_size, t.iterations, t.num_samples, t.num_elites) == (512, 10, 512, 6, 512, 64)
+    assert (t.update_freq, a.seed_steps, t.horizon_schedule_steps) == (40, 5000, 10_000)
     assert cfg.train.steps_per_task == 300_000
 
 
 def test_dotted_and_short_overrides_with_type_conversion():
     cfg = load_config("smoke", [
-        "agent.mlp_dim=64",  # dotted int
+        "agent.tdmpc.mlp_dim=64",  # dotted int
         "lr=0.01",  # unique short key, float
         "use_crelu=false",  # bool
         "env.tasks=[room2, room1]",  # tuple from a YAML list
@@ -59,14 +59,14 @@ def test_dotted_and_short_overrides_with_type_conversion():
         "steps_per_task=1000",
         "tensorboard=true",
     ])
-    assert cfg.agent.mlp_dim == 64 and isinstance(cfg.agent.mlp_dim, int)
+    assert cfg.agent.tdmpc.mlp_dim == 64 and isinstance(cfg.agent.tdmpc.mlp_dim, int)
     assert cfg.agent.lr == 0.01
-    assert cfg.agent.use_crelu is False
+    assert cfg.agent.tdmpc.use_crelu is False
     assert cfg.env.tasks == ("room2", "room1")
     assert cfg.agent.random_action_probs == (0.1, 0.1, 0.8)
     assert cfg.train.updates_per_episode is None
     assert cfg.env.dense_reward is None
-    assert cfg.agent.discount == 1.0 and isinstance(cfg.agent.discount, float)
+    assert cfg.agent.tdmpc.discount == 1.0 and isinstance(cfg.agent.tdmpc.discount, float)
     assert cfg.train.steps_per_task == 1000
     assert cfg.train.tensorboard is True
     assert cfg.updates_per_episode == cfg.env.episode_length  # None means one update per agent step
@@ -95,14 +95,14 @@ def test_method_and_seed_shortcuts():
 
 
 def test_round_trip_through_dict_and_yaml():
-    cfg = load_config("smoke", ["agent.mlp_dim=24", "env.tasks=[room3,room1]", "train.seed=5",
+    cfg = load_config("smoke", ["agent.tdmpc.mlp_dim=24", "env.tasks=[room3,room1]", "train.seed=5",
                                 "env.dense_reward=false"])
     assert Config.from_dict(cfg.to_dict()) == cfg
     assert Config.from_dict(yaml.safe_load(yaml.safe_dump(cfg.to_dict()))) == cfg
 
 
-@pytest.mark.parametrize("override", ["agent.mlp_dim=abc", "agent.use_crelu=maybe", "agent.foo=1", "foo=1",
-                                      "model.mlp_dim=3", "agent.rho=1.5", "agent.horizon=0",
+@pytest.mark.parametrize("override", ["agent.tdmpc.mlp_dim=abc", "agent.tdmpc.use_crelu=maybe", "agent.foo=1", "foo=1",
+                                      "model.mlp_dim=3", "agent.tdmpc.rho=1.5", "agent.tdmpc.horizon=0",
                                       "agent.random_action_probs=[0.5,0.5,0.5]", "train.device=tpu",
                                       "env.episode_length=3", "mlp_dim"])
 def test_bad_overrides_raise_one_line_config_error(override):
@@ -144,12 +144,12 @@ BAD_INVOCATIONS = {
     "unknown-short-key": ["train", "smoke", "foo=1", OUT],
     "unknown-dotted-key": ["train", "smoke", "agent.foo=1", OUT],
     "unknown-section": ["train", "smoke", "model.mlp_dim=3", OUT],
-    "int-not-a-number": ["train", "smoke", "agent.mlp_dim=abc", OUT],
-    "bool-maybe": ["train", "smoke", "agent.use_crelu=maybe", OUT],
+    "int-not-a-number": ["train", "smoke", "agent.tdmpc.mlp_dim=abc", OUT],
+    "bool-maybe": ["train", "smoke", "agent.tdmpc.use_crelu=maybe", OUT],
     "zero-budget": ["train", "smoke", "train.steps_per_task=0", OUT],
     "negative-batch": ["train", "smoke", "agent.batch_size=-1", OUT],
-    "elites-exceed-samples": ["train", "smoke", "agent.num_elites=100", "agent.num_samples=10", OUT],
-    "rho-out-of-range": ["train", "smoke", "agent.rho=1.5", OUT],
+    "elites-exceed-samples": ["train", "smoke", "agent.tdmpc.num_elites=100", "agent.tdmpc.num_samples=10", OUT],
+    "rho-out-of-range": ["train", "smoke", "agent.tdmpc.rho=1.5", OUT],
     "episode-shorter-than-horizon": ["train", "smoke", "env.episode_length=2", OUT],
     "unknown-device": ["train", "smoke", "train.device=tpu", OUT],
     "negative-seed": ["train", "smoke", "--seed", "-1", OUT],
@@ -172,9 +172,9 @@ BAD_INVOCATIONS = {
 #: What each message must name.
 NAMED_IN_THE_MESSAGE = {
     "unknown-preset": "nope", "unknown-method": "nope", "unknown-task": "room9", "unknown-short-key": "foo",
-    "unknown-dotted-key": "agent.foo", "unknown-section": "model", "int-not-a-number": "agent.mlp_dim",
-    "bool-maybe": "agent.use_crelu", "zero-budget": "train.steps_per_task", "negative-batch": "agent.batch_size",
-    "elites-exceed-samples": "num_elites", "rho-out-of-range": "agent.rho", "unknown-device": "tpu",
+    "unknown-dotted-key": "agent.foo", "unknown-section": "model", "int-not-a-number": "agent.tdmpc.mlp_dim",
+    "bool-maybe": "agent.tdmpc.use_crelu", "zero-budget": "train.steps_per_task", "negative-batch": "agent.batch_size",
+    "elites-exceed-samples": "num_elites", "rho-out-of-range": "agent.tdmpc.rho", "unknown-device": "tpu",
     "override-without-equals": "mlp_dim", "unknown-option": "--bogus", "existing-run-dir": "--force",
     "resume-missing-dir": "does-not-exist", "resume-corrupt-checkpoint": "task1_room1.pt",
     "unknown-subcommand": "frobnicate", "cuda-unavailable": "cuda", "allocator-env-maybe": "DRAGO_KEEP_FREED_MEMORY",
@@ -229,7 +229,7 @@ def test_missing_preset_message_does_not_require_overrides(capsys):
 
 def test_bad_config_writes_no_run_dir(tmp_path, capsys):
     out = tmp_path / "run"
-    assert cli.main(["train", "smoke", "agent.mlp_dim=abc", "--out", str(out)]) == 2
+    assert cli.main(["train", "smoke", "agent.tdmpc.mlp_dim=abc", "--out", str(out)]) == 2
     assert not out.exists()
 
 
@@ -255,7 +255,7 @@ def test_list_settings_mentions_every_setting(capsys):
     for name in [*available_presets(), *METHODS, *GRID_TASKS]:
         assert name in out, name
     keys = [key for key, _, _ in describe_settings()]
-    assert "agent.mlp_dim" in keys and "train.steps_per_task" in keys
+    assert "agent.tdmpc.mlp_dim" in keys and "train.steps_per_task" in keys
     for key in keys:
         assert key in out, key
 

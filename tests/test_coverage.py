@@ -232,7 +232,7 @@ def test_load_world_model_refuses_bad_checkpoints(smoke_run, tmp_path):
         load_world_model(tmp_path / "resume.pt")
     # Weights of another width than the stored config describes.
     data = load_checkpoint(task_checkpoint(smoke_run, 0), kind="task")
-    data["config"]["agent"]["mlp_dim"] = 16
+    data["config"]["agent"]["tdmpc"]["mlp_dim"] = 16
     payload = {k: v for k, v in data.items() if k not in ("format", "version", "kind", "domain")}
     save_checkpoint(tmp_path / "task1_room1.pt", payload, kind="task", domain="minigrid")
     with pytest.raises(CheckpointError, match="does not match its config") as info:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from helpers import QUIET, read_csv
+from helpers import tdmpc_config, QUIET, read_csv
 
 from drago import cli
 from drago.agent.buffer import EpisodeReplay
@@ -67,12 +67,11 @@ def test_a_run_trained_on_the_gpu_resumes_and_is_read_on_the_cpu(tmp_path):
 def test_bfloat16_autocast_on_the_gpu_learns_like_float32():
     from drago.agent.agent import Agent, Batch
     from drago.agent.networks import WorldModel
-    from drago.config import AgentConfig
 
     def fit(precision: str) -> dict[str, float]:
         torch.manual_seed(0)
         horizon, n = 3, 64
-        cfg = AgentConfig(mlp_dim=512, horizon=horizon, batch_size=n, discount=0.0, update_freq=1,
+        cfg = tdmpc_config(mlp_dim=512, horizon=horizon, batch_size=n, discount=0.0, update_freq=1,
                           precision=precision)
         wm = WorldModel(3, 3, 512, use_crelu=True, squash=True).to(CUDA)
         agent = Agent(wm, torch.optim.Adam(wm.dynamics.parameters(), lr=cfg.lr), cfg, discrete=True)

@@ -330,12 +330,12 @@ def test_transfer_catalogue_matches_table_1():
 ])
 def test_presets(preset, tasks, repeat, length, horizon):
     cfg = load_config(preset)
-    assert (cfg.env.tasks, cfg.env.action_repeat, cfg.env.episode_length, cfg.agent.horizon) == (
+    assert (cfg.env.tasks, cfg.env.action_repeat, cfg.env.episode_length, cfg.agent.tdmpc.horizon) == (
         tasks, repeat, length, horizon)
-    assert (cfg.agent.first_step_qr_only, cfg.agent.use_crelu, cfg.agent.update_freq) == (True, False, 2)
-    assert (cfg.method.vae_kl_coef, cfg.method.rehearsal_freq) == (0.02, 10)
+    assert (cfg.agent.tdmpc.first_step_qr_only, cfg.agent.tdmpc.use_crelu, cfg.agent.tdmpc.update_freq) == (True, False, 2)
+    assert (cfg.method.vae.kl_coef, cfg.method.rehearsal.freq) == (0.02, 10)
     if not preset.endswith("-cpu"):
-        assert (cfg.agent.mlp_dim, cfg.agent.batch_size, cfg.agent.num_samples, cfg.method.vae_hidden_dim) == (
+        assert (cfg.agent.tdmpc.mlp_dim, cfg.agent.batch_size, cfg.agent.tdmpc.num_samples, cfg.method.vae.hidden_dim) == (
             512, 512, 512, 256)
         assert (cfg.train.eval_freq, cfg.train.eval_episodes) == (20000, 20)
         assert cfg.train.steps_per_task == {"cheetah": 500_000, "walker": 300_000}[preset]

@@ -61,12 +61,12 @@ def test_settings_reference_lists_every_setting(site):
 def test_settings_reference_shows_each_default(site):
     text = (site / "reference" / "settings.html").read_text(encoding="utf-8")
     rows = {html.unescape(m.group(1)): html.unescape(m.group(2))
-            for m in re.finditer(r"<td><code>([a-z_]+\.[a-z_]+)</code></td>\s*<td><code>.*?</code></td>\s*"
+            for m in re.finditer(r"<td><code>([a-z_]+(?:\.[a-z_]+)+)</code></td>\s*<td><code>.*?</code></td>\s*"
                                  r"<td><code>(.*?)</code></td>", text)}
-    assert rows["agent.mlp_dim"] == "512"
+    assert rows["agent.tdmpc.mlp_dim"] == "512"
     assert rows["env.tasks"] == "[room1, room2, room3, room4]"
-    assert rows["agent.lr_final"] == "null"
-    assert rows["agent.use_crelu"] == "true"
+    assert rows["agent.tdmpc.lr_final"] == "null"
+    assert rows["agent.tdmpc.use_crelu"] == "true"
 
 
 @pytest.mark.slow

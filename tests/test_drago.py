@@ -21,7 +21,7 @@ from drago.continual.generative import (
 )
 from drago.envs.fourrooms import observation, traversable_cells
 from drago.training.checkpoint import load_checkpoint
-from helpers import SimulatedCrash, crash_at_gradient_step
+from helpers import tdmpc_config, SimulatedCrash, crash_at_gradient_step
 
 
 def _world_model(seed: int) -> WorldModel:
@@ -254,7 +254,7 @@ def test_the_reviewer_is_paid_against_theta_less_the_offset(tmp_path):
 
     out = tmp_path / "run"
     assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
-                     "train.tensorboard=false", "env.tasks=[room1,room2]", "method.threshold_offset=100"]) == 0
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "method.reviewer.threshold_offset=100"]) == 0
     reviewer = [r for r in csv.DictReader((out / "train.csv").open()) if r["reviewer_episode_reward"] != ""]
     assert reviewer and all(r["task"] == "room2" for r in reviewer)
     for row in reviewer:
@@ -353,7 +353,7 @@ def test_drago_trains_in_bfloat16(tmp_path):
 
     out = tmp_path / "run"
     assert cli.main(["train", "smoke", "--method", "drago", "--out", str(out), "--no-progress",
-                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.precision=bfloat16"]) == 0
+                     "train.tensorboard=false", "env.tasks=[room1,room2]", "agent.tdmpc.precision=bfloat16"]) == 0
     rows = [r for r in csv.DictReader((out / "train.csv").open()) if r["reviewer_value_loss"]]
     assert rows
     for r in rows:
@@ -366,7 +366,6 @@ def test_reviewer_count_bonus_stays_float32_when_planning_in_bfloat16():
     """Classifier pseudo-counts divide by the change of a probability across one update: bfloat16
     would round it away, so the reviewer's planner evaluates the bonus outside autocast."""
     from drago.agent.agent import Agent
-    from drago.config import AgentConfig
 
     torch.manual_seed(0)
     counts = ContinuousCounts(obs_dim=3)
@@ -383,7 +382,7 @@ def test_reviewer_count_bonus_stays_float32_when_planning_in_bfloat16():
         seen.append((torch.is_autocast_enabled("cpu"), z.dtype))
         return counts.bonus(z)
 
-    cfg = AgentConfig(mlp_dim=16, horizon=3, iterations=2, num_samples=16, num_elites=4, precision="bfloat16")
+    cfg = tdmpc_config(mlp_dim=16, horizon=3, iterations=2, num_samples=16, num_elites=4, precision="bfloat16")
     wm = WorldModel(3, 2, 16, use_crelu=False, squash=False)
     reviewer = Agent(wm, torch.optim.Adam(wm.dynamics.parameters()), cfg, discrete=False, reviewer=True)
     reviewer.act(np.zeros(3, dtype=np.float32), step=10**6, eval_mode=False, first_step=True, bonus=bonus)

@@ -96,14 +96,14 @@ def test_runs_of_a_method_with_other_settings_are_reported_apart(tmp_path):
         cfg = load_config("minigrid-cpu", list(overrides), method="drago-no-rehearsal", seed=seed)
         return ReportedRun(path=tmp_path / f"{seed}-{len(overrides)}", cfg=cfg, summary=None, eval_rows=[])
 
-    runs = [run(1), run(2, "agent.precision=float32"), run(1, "method.threshold_offset=3"),
-            run(2, "method.threshold_offset=3"), run(3, "train.reviewer_steps_per_task=null")]
+    runs = [run(1), run(2, "agent.tdmpc.precision=float32"), run(1, "method.reviewer.threshold_offset=3"),
+            run(2, "method.reviewer.threshold_offset=3"), run(3, "train.reviewer_steps_per_task=null")]
     groups = label_runs(runs)
     # Seeds, and what a run resolves for its machine, do not split a group; a method's setting and a budget do.
     assert {label: len(members) for label, members in groups.items()} == {
-        "drago-no-rehearsal [train.reviewer_steps_per_task=5000, method.threshold_offset=0.0]": 2,
-        "drago-no-rehearsal [train.reviewer_steps_per_task=5000, method.threshold_offset=3.0]": 2,
-        "drago-no-rehearsal [train.reviewer_steps_per_task=null, method.threshold_offset=0.0]": 1}
+        "drago-no-rehearsal [train.reviewer_steps_per_task=5000, method.reviewer.threshold_offset=0.0]": 2,
+        "drago-no-rehearsal [train.reviewer_steps_per_task=5000, method.reviewer.threshold_offset=3.0]": 2,
+        "drago-no-rehearsal [train.reviewer_steps_per_task=null, method.reviewer.threshold_offset=0.0]": 1}
     # Transfers of one method and setting stay one group across cases and budgets (each case is its own).
     cases = [transfer(tmp_path, "smoke", "drago", 1, "room1to2", 2), transfer(tmp_path, "smoke", "drago", 1, "room1to3", 3)]
     cases[1].cfg.train.learner_steps_per_task = 4000

@@ -39,9 +39,9 @@ from drago.training.checkpoint import load_checkpoint
 
 DRAGO = Path(sys.executable).parent / "drago"
 #: A PETS agent small enough for seconds-long runs.
-PETS = ["agent.kind=pets", "agent.pets_members=2", "agent.pets_hidden=16", "agent.pets_layers=2",
-        "agent.pets_particles=2", "agent.pets_horizon=3", "agent.pets_iterations=2", "agent.pets_population=12",
-        "agent.pets_elites=3", "agent.batch_size=16"]
+PETS = ["agent.kind=pets", "agent.pets.members=2", "agent.pets.hidden=16", "agent.pets.layers=2",
+        "agent.pets.particles=2", "agent.pets.horizon=3", "agent.pets.iterations=2", "agent.pets.population=12",
+        "agent.pets.elites=3", "agent.batch_size=16"]
 #: Two tasks of four 20-step episodes, the first two random, evaluated at each task's start and end; dense
 #: transfers, as the PETS presets ask.
 TWO_TASKS = ["env.tasks=[room1,room2]", "env.episode_length=20", "train.steps_per_task=80", "agent.seed_steps=40",
@@ -64,7 +64,7 @@ def pets_runs(tmp_path_factory):
     def get(method: str) -> Path:
         if method not in done:
             out = root / method
-            assert train(out, method, "method.ewc_fisher_batches=2") == 0
+            assert train(out, method, *(["method.ewc.fisher_batches=2"] if method == "ewc" else [])) == 0
             done[method] = out
         return done[method]
 
@@ -244,7 +244,7 @@ def test_the_learner_learns_its_own_reward_and_keeps_a_uniform_priority():
     probe = (torch.rand(4, 3), torch.eye(3)[[0, 1, 2, 0]], torch.rand(4, 3))
     assert torch.equal(other.reward_head(*probe), agent.reward_head(*probe))
     # The known reward: the learner plans on the grid's own reward and learns none.
-    known = build_agent(load_config("smoke", [*PETS, "agent.pets_reward=known"]), spec, world_model, None, task="room1")
+    known = build_agent(load_config("smoke", [*PETS, "agent.pets.reward=known"]), spec, world_model, None, task="room1")
     assert known.reward_head is None and set(known.update(batch, 0, train_world_model=False)) == {"priority"}
     action = known.act(np.zeros(3, dtype=np.float32), 0, eval_mode=True, first_step=True)
     assert action.sum() == 1
@@ -276,7 +276,7 @@ def test_a_continuous_plan_warm_starts_the_next_one(monkeypatch):
 # ---------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("method, extra, words", [
     ("curiosity", [], ["method 'curiosity'", "needs a learned value", "agent.kind=pets"]),
-    ("drago-single-agent", ["agent.pets_reward=known"], ["method 'drago-single-agent'", "agent.pets_reward=learned"]),
+    ("drago-single-agent", ["agent.pets.reward=known"], ["method 'drago-single-agent'", "agent.pets.reward=learned"]),
 ])
 def test_a_method_pets_cannot_serve_says_so_in_one_line(method, extra, words, tmp_path, capsys):
     with pytest.raises(ConfigError) as err:
@@ -290,13 +290,14 @@ def test_a_method_pets_cannot_serve_says_so_in_one_line(method, extra, words, tm
 
 @pytest.mark.parametrize("override, words", [
     ("agent.kind=petz", "unknown agent.kind 'petz'; valid choices: tdmpc, pets"),
-    ("agent.pets_elites=50", "agent.pets_elites (50) must not exceed agent.pets_population (12)"),
-    ("agent.pets_propagation=ts2", "valid choices: tsinf, ts1"),
-    ("agent.pets_members=0", "setting 'agent.pets_members' must be positive"),
-    ("agent.precision=bfloat16", "agent.kind=pets runs in float32"),
+    ("agent.pets.elites=50", "agent.pets.elites (50) must not exceed agent.pets.population (12)"),
+    ("agent.pets.propagation=ts2", "valid choices: tsinf, ts1"),
+    ("agent.pets.members=0", "setting 'agent.pets.members' must be positive"),
+    ("agent.tdmpc.precision=bfloat16", "setting 'agent.tdmpc.precision' applies to agent.kind=tdmpc, and this run is "
+                                        "agent.kind=pets"),
     ("transfer.reward=dens", "unknown transfer.reward 'dens'; valid choices: dense, sparse"),
-    ("agent.pets_reward=known env.domain=cheetah env.tasks=[cheetah-run]",
-     "agent.pets_reward=known needs a reward known as a function of observations"),
+    ("agent.pets.reward=known env.domain=cheetah env.tasks=[cheetah-run]",
+     "agent.pets.reward=known needs a reward known as a function of observations"),
 ])
 def test_pets_settings_are_validated(override, words):
     with pytest.raises(ConfigError, match=words.replace("(", r"\(").replace(")", r"\)")):
@@ -307,10 +308,10 @@ def test_the_pets_presets():
     gpu, cpu = load_config("minigrid-pets"), load_config("minigrid-pets-cpu")
     for cfg in (gpu, cpu):
         assert cfg.agent.kind == "pets" and cfg.transfer.reward == "dense" and cfg.env.domain == "minigrid"
-        assert cfg.agent.pets_particles % cfg.agent.pets_members == 0  # every member gets as many particles
+        assert cfg.agent.pets.particles % cfg.agent.pets.members == 0  # every member gets as many particles
         for method in METHODS:
             check_method(load_config(cfg.preset, method=method))
-    assert (gpu.agent.pets_population, gpu.agent.pets_elites, gpu.agent.pets_particles) == (400, 40, 20)
+    assert (gpu.agent.pets.population, gpu.agent.pets.elites, gpu.agent.pets.particles) == (400, 40, 20)
     assert cpu.train.steps_per_task < gpu.train.steps_per_task
 
 

@@ -20,7 +20,7 @@ from drago.training.records import RECORD_VERSION, RecordError, read_record, wri
 
 METHODS = ("continual", "scratch")
 TINY = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100", "train.tensorboard=false",
-        "agent.mlp_dim=16", "agent.batch_size=16", "agent.iterations=1", "agent.num_samples=8", "agent.num_elites=2",
+        "agent.tdmpc.mlp_dim=16", "agent.batch_size=16", "agent.tdmpc.iterations=1", "agent.tdmpc.num_samples=8", "agent.tdmpc.num_elites=2",
         "train.threads=1"]
 REPORT_FILES = ("report.md", "report.html", "transfers.csv", "transfers.md")
 
@@ -60,7 +60,7 @@ def test_each_finished_unit_is_one_small_record_without_binary_state(recorded):
         assert sum(name.startswith("transfer/") and name.endswith("/summary.json") for name in files) == 4
         assert not any(name.endswith((".pt", ".npz")) or name.startswith(("checkpoints/", "tb/")) for name in files)
         assert record["provenance"]["threads"] == 1 and record["provenance"]["torch"]
-        assert "train.threads" not in record["protocol"]["run"] and "agent.precision" not in record["protocol"]["run"]
+        assert "train.threads" not in record["protocol"]["run"] and "agent.tdmpc.precision" not in record["protocol"]["run"]
         # settings added since records exist stay out at their neutral default: older records keep their digest
         assert "method.options" not in record["protocol"]["run"]
         assert path.stat().st_size < 200_000
@@ -88,17 +88,17 @@ def test_a_changed_setting_reruns_exactly_the_units_it_changed(recorded, tmp_pat
     mine = tmp_path / "records"
     shutil.copytree(records, mine)
     # scratch is studied again with another planner horizon: its record is replaced, continual's is untouched
-    result = run_study(plan(tmp_path / "other", mine, "agent.horizon=2", methods=("scratch",)), echo=lambda line: None,
+    result = run_study(plan(tmp_path / "other", mine, "agent.tdmpc.horizon=2", methods=("scratch",)), echo=lambda line: None,
                        in_process=cli.main)
     assert result.ok
-    assert read_record(mine / "scratch" / "seed1.json.gz")["protocol"]["run"]["agent.horizon"] == 2
+    assert read_record(mine / "scratch" / "seed1.json.gz")["protocol"]["run"]["agent.tdmpc.horizon"] == 2
     assert (mine / "continual" / "seed1.json.gz").read_bytes() == (records / "continual" / "seed1.json.gz").read_bytes()
     # the original study now has one unit to run again, and says why
     again = plan(tmp_path / "again", mine)
     states = {job.label: job.state for job in again.runs}
     assert states == {"continual seed1": DONE, "scratch seed1": START}
     assert [job.label for job in again.record_jobs] == ["scratch seed1 record"]
-    assert any("agent.horizon: 2 recorded, 3 now" in note for note in again.notes), again.notes
+    assert any("agent.tdmpc.horizon: 2 recorded, 3 now" in note for note in again.notes), again.notes
 
 
 @pytest.mark.slow

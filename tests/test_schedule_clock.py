@@ -16,7 +16,7 @@ import torch
 import drago
 from drago.agent.networks import linear_schedule
 
-SMOKE = ["env.tasks=[room1,room2]", "train.steps_per_task=600", "agent.lr_schedule_steps=600"]
+SMOKE = ["env.tasks=[room1,room2]", "train.steps_per_task=600", "agent.tdmpc.lr_schedule_steps=600"]
 
 
 def _run(tmp_path: Path, method: str, clock: str) -> Path:
@@ -33,7 +33,7 @@ def test_the_learner_clock_changes_nothing_without_a_reviewer(tmp_path):
 
 @pytest.mark.slow
 def test_under_the_learner_clock_drago_s_learner_floor_follows_its_own_steps(tmp_path):
-    cfg = drago.load_config("smoke", SMOKE, method="drago").agent
+    cfg = drago.load_config("smoke", SMOKE, method="drago").agent.tdmpc
     floors = {}
     for clock in ("task", "learner"):
         run = _run(tmp_path, "drago", clock)

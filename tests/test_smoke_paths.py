@@ -26,12 +26,12 @@ def test_every_preset_and_agent_kind_has_a_smoke_path(preset, kind):
     assert cfg.preset == f"{preset}+smoke"
     assert (cfg.env.domain, cfg.env.tasks, cfg.agent.kind) == (full.env.domain, full.env.tasks, kind)
     assert (cfg.train.steps_per_task, cfg.agent.seed_steps) == (SMOKE.train.steps_per_task, SMOKE.agent.seed_steps)
-    assert (cfg.agent.mlp_dim, cfg.agent.pets_population) == (SMOKE.agent.mlp_dim, SMOKE.agent.pets_population)
+    assert (cfg.agent.tdmpc.mlp_dim, cfg.agent.pets.population) == (SMOKE.agent.tdmpc.mlp_dim, SMOKE.agent.pets.population)
 
 
 def test_overrides_still_win_over_the_smoke_path():
     cfg = load_config("minigrid-cpu", ["train.steps_per_task=600"], smoke=True)
-    assert cfg.train.steps_per_task == 600 and cfg.agent.mlp_dim == SMOKE.agent.mlp_dim
+    assert cfg.train.steps_per_task == 600 and cfg.agent.tdmpc.mlp_dim == SMOKE.agent.tdmpc.mlp_dim
 
 
 @pytest.mark.slow

@@ -26,7 +26,7 @@ from helpers import crash_at_gradient_step, wait_for
 
 METHODS = ("continual", "scratch")
 TINY = ["train.steps_per_task=200", "agent.seed_steps=100", "train.checkpoint_freq=100", "train.tensorboard=false",
-        "agent.mlp_dim=16", "agent.batch_size=16", "agent.iterations=1", "agent.num_samples=8", "agent.num_elites=2",
+        "agent.tdmpc.mlp_dim=16", "agent.batch_size=16", "agent.tdmpc.iterations=1", "agent.tdmpc.num_samples=8", "agent.tdmpc.num_elites=2",
         "train.threads=1"]
 CASES = ("room1to2-after2", "room1to3-after3", "room1to3-after4", "room3to4-after4")
 LOGS = ("train.csv", "eval.csv")

@@ -34,8 +34,8 @@ from slurm_cluster import SlurmCluster, wait_for  # noqa: E402
 METHODS = ("continual", "scratch")
 # Two rooms of 600 steps (6 episodes), a checkpoint every 100: a few seconds a run, long enough to stop in the middle.
 TINY = ["env.tasks=[room1,room2]", "train.steps_per_task=600", "agent.seed_steps=100", "train.checkpoint_freq=100",
-        "train.tensorboard=false", "agent.mlp_dim=16", "agent.batch_size=16", "agent.iterations=1",
-        "agent.num_samples=8", "agent.num_elites=2", "train.threads=1"]
+        "train.tensorboard=false", "agent.tdmpc.mlp_dim=16", "agent.batch_size=16", "agent.tdmpc.iterations=1",
+        "agent.tdmpc.num_samples=8", "agent.tdmpc.num_elites=2", "train.threads=1"]
 LOGS = ("train.csv", "eval.csv")
 RUN = Path("continual") / "seed1"
 TRANSFER = RUN / "transfer" / "room1to2-after2"

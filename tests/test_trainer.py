@@ -77,7 +77,7 @@ def test_smoke_run_writes_every_output(reference):
         assert (reference / name).is_file(), name
     cfg = Config.from_dict(yaml.safe_load((reference / "config.yaml").read_text()))
     # The settings asked for, with the speed settings' `auto` resolved for this machine (tests/test_speed.py).
-    assert "auto" not in (cfg.agent.precision, cfg.agent.compile)
+    assert "auto" not in (cfg.agent.tdmpc.precision, cfg.agent.tdmpc.compile)
     assert cfg == resolve_speed(load_config("smoke", ["train.tensorboard=false"]), torch.device("cpu"))[0]
 
     summary = json.loads((reference / "summary.json").read_text())

@@ -30,7 +30,7 @@ needs_wandb = pytest.mark.skipif(
     reason="wandb is not installed (the wandb extra: pip install -e '.[wandb]'; scripts/setup.sh installs it)")
 
 #: One task of 300 agent steps: the seed phase (200) and one episode with gradient steps, so losses are logged.
-TINY = ["env.tasks=[room1]", "train.steps_per_task=300", "agent.lr_schedule_steps=300"]
+TINY = ["env.tasks=[room1]", "train.steps_per_task=300", "agent.tdmpc.lr_schedule_steps=300"]
 
 
 @pytest.fixture

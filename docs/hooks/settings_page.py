@@ -73,21 +73,40 @@ def _code(text: str) -> str:
     return f"`{text}`"
 
 
+def _readers_line(section: str) -> str:
+    """Who reads a kind's or a method's section, from the registries (empty for the five main sections)."""
+    parts = section.split(".")
+    if len(parts) != 2:
+        return ""
+    if parts[0] == "agent":
+        return f"Read when `agent.kind={parts[1]}`; a run of another kind refuses it on the command line."
+    continual = importlib.import_module("drago.continual")
+    readers = [name for name in continual.available_methods()
+               if parts[1] in continual.get_method(name).reads]
+    return ("Read by " + ", ".join(f"`{name}`" for name in readers)
+            + "; another method refuses it on the command line.") if readers else ""
+
+
 def settings_markdown() -> str:
     config_module = _config_module()
 
-    defaults = config_module.Config()
     described = {key: (type_name, default) for key, type_name, default in config_module.describe_settings()}
     out: list[str] = []
     seen: set[str] = set()
-    for section in config_module.SECTIONS:
-        cls = type(getattr(defaults, section))
+    for section, cls in config_module.SECTION_CLASSES.items():
         summary = _clean(inspect.cleandoc(cls.__doc__ or "").split("\n\n")[0].replace("\n", " "))
-        out += [f"## `{section}`: {cls.__name__} {{#{section}}}", "", summary, ""]
+        level = "##" if "." not in section else "###"
+        anchor = section.replace(".", "-")
+        out += [f"{level} `{section}`: {cls.__name__} {{#{anchor}}}", "", summary, ""]
+        readers = _readers_line(section)
+        if readers:
+            out += [readers, ""]
         group: str | None = None
         table_open = False
         for doc in field_docs(cls):
             key = f"{section}.{doc.name}"
+            if key in config_module.SECTION_CLASSES:
+                continue  # a subsection: its own table follows
             if key not in described:
                 log.warning("settings page: %s is a field of %s but describe_settings() does not list it",
                             key, cls.__name__)
@@ -124,8 +143,19 @@ def _read_preset(directory: Path, name: str) -> tuple[dict[str, dict[str, Any]],
         merged = {section: dict(values) for section, values in _read_preset(directory, base)[0].items()}
     for section, values in data.items():
         if isinstance(values, dict):
-            merged.setdefault(section, {}).update(values)
+            merged.setdefault(section, {}).update(_flatten(values))
     return merged, base
+
+
+def _flatten(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A section's settings with its subsections' under dotted names (``tdmpc.horizon``)."""
+    out: dict[str, Any] = {}
+    for name, value in values.items():
+        if isinstance(value, dict) and name != "options":
+            out.update(_flatten(value, f"{prefix}{name}."))
+        else:
+            out[f"{prefix}{name}"] = value
+    return out
 
 
 def presets_markdown() -> str:
@@ -159,7 +189,8 @@ def presets_markdown() -> str:
     out.append("| *based on* | | " + " | ".join(f"`{resolved[n][1]}`" if resolved[n][1] else "" for n in names) + " |")
     for key in keys:
         cells = [_code(_value(changed[key][n])) if n in changed[key] else "" for n in names]
-        out.append(f"| [{_code(key)}](#{key.split('.')[0]}) | {_code(_value(defaults[key]))} | " + " | ".join(cells) + " |")
+        anchor = key.rpartition(".")[0].replace(".", "-")
+        out.append(f"| [{_code(key)}](#{anchor}) | {_code(_value(defaults[key]))} | " + " | ".join(cells) + " |")
     return "\n".join(out) + "\n"
 
 

@@ -7,7 +7,6 @@ world model is fresh or carried over, and DRAGO's learner and reviewer share one
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -27,7 +26,7 @@ from drago.agent.planner import (
     terminal_value,
 )
 from drago.agent.protocol import TDMPC_CAPABILITIES
-from drago.agent.speed import resolve_agent_speed
+from drago.agent.speed import resolve_agent_speed, with_speed
 from drago.config import AgentConfig
 
 
@@ -70,41 +69,43 @@ class Agent:
         self.world_model = world_model
         self.world_optimizer = world_optimizer
         device = next(world_model.parameters()).device
-        if "auto" in (cfg.precision, cfg.compile):
+        if "auto" in (cfg.tdmpc.precision, cfg.tdmpc.compile):
             # Built outside a run, which resolves both when it starts: the precision a run would choose here,
             # and eager, because compiling pays back only over a run's many thousand calls.
-            cfg = resolve_agent_speed(replace(cfg, compile="false" if cfg.compile == "auto" else cfg.compile),
-                                      device)[0]
+            compile_ = "false" if cfg.tdmpc.compile == "auto" else cfg.tdmpc.compile
+            cfg = resolve_agent_speed(with_speed(cfg, compile=compile_), device)[0]
         self.cfg = cfg
         self.discrete = discrete
         self.reviewer = reviewer
-        self.heads = TaskHeads(world_model.obs_dim, world_model.action_dim, cfg.mlp_dim, discrete,
-                               fast_tanh=cfg.fast_tanh).to(device)
+        self.heads = TaskHeads(world_model.obs_dim, world_model.action_dim, cfg.tdmpc.mlp_dim, discrete,
+                               fast_tanh=cfg.tdmpc.fast_tanh).to(device)
         # The policy has its own optimizer: the model loss never reaches it and the policy loss must
         # not move the critics.
         self.model_optimizer = torch.optim.Adam(
             [*self.heads.reward.parameters(), *self.heads.q.parameters()], lr=cfg.lr)
         self.policy_optimizer = torch.optim.Adam(self.heads.policy.parameters(), lr=cfg.lr)
-        self.std_floor = cfg.std_schedule_start  # CEM std floor, advanced by updates only (paper §2; docs: Design, the agent)
+        # CEM std floor, advanced by updates only (paper §2; docs: Design, the agent)
+        self.std_floor = cfg.tdmpc.std_schedule_start
         self._warm_mean: torch.Tensor | None = None
         self.device = device
         # Optional torch.compile: the update's loss functions (their backward is compiled with them) and
         # one step of the planner's trajectory evaluation. Optimizer steps stay eager.
         self._model_losses, self._policy_loss, self._evaluator = model_losses, policy_loss, EAGER
-        if cfg.compile == "true":
+        if cfg.tdmpc.compile == "true":
             self._model_losses, self._policy_loss = torch.compile(model_losses), torch.compile(policy_loss)
             self._evaluator = Evaluator(step=torch.compile(imagine_step), terminal=torch.compile(terminal_value))
 
     def autocast(self):
         """The context of this agent's forward passes: bfloat16 autocast when ``precision`` asks for it."""
-        return autocast(self.device, self.cfg.precision)
+        return autocast(self.device, self.cfg.tdmpc.precision)
 
     # ------------------------------------------------------------------ acting
     def planning_horizon(self, step: int) -> int:
-        return int(min(self.cfg.horizon, linear_schedule(1, self.cfg.horizon, self.cfg.horizon_schedule_steps, step)))
+        c = self.cfg.tdmpc
+        return int(min(c.horizon, linear_schedule(1, c.horizon, c.horizon_schedule_steps, step)))
 
     def plan_settings(self, step: int) -> PlanSettings:
-        c = self.cfg
+        c = self.cfg.tdmpc
         return PlanSettings(horizon=self.planning_horizon(step), iterations=c.iterations, num_samples=c.num_samples,
                             num_elites=c.num_elites, num_policy_trajectories=int(c.mixture_coef * c.num_samples),
                             temperature=c.temperature, momentum=c.momentum, discount=c.discount, use_q=c.use_q,
@@ -118,7 +119,7 @@ class Agent:
         batch, e.g. evaluation episodes played side by side (numpy in, numpy out)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         settings = self.plan_settings(step)
-        if bonus is not None and self.cfg.precision != "float32":
+        if bonus is not None and self.cfg.tdmpc.precision != "float32":
             bonus = _float32_bonus(bonus)
         with self.autocast():
             if self.discrete:
@@ -137,7 +138,7 @@ class Agent:
     def rollout(self, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """The world model's open-loop rollout z_0..z_H of these rows, with a graph (see :meth:`update`)."""
         with self.autocast():
-            return rollout(self.world_model, obs, actions, self.cfg.horizon)
+            return rollout(self.world_model, obs, actions, self.cfg.tdmpc.horizon)
 
     def update(self, batch: Batch, step: int, train_world_model: bool = True, policy_rows: int | None = None,
                curiosity_coef: float = 0.0, world_model_loss: Callable[[], torch.Tensor] | None = None,
@@ -155,10 +156,10 @@ class Agent:
             latents: this batch's :meth:`rollout` when the caller already has it: with its graph when
                 ``train_world_model``, detached otherwise (DRAGO shares one rollout between its agents).
         """
-        c = self.cfg
+        c = self.cfg.tdmpc
         self.std_floor = linear_schedule(c.std_schedule_start, c.min_std, c.std_schedule_steps, step)
         if c.lr_final is not None:
-            lr = linear_schedule(c.lr, c.lr_final, c.lr_schedule_steps, step)
+            lr = linear_schedule(self.cfg.lr, c.lr_final, c.lr_schedule_steps, step)
             for optimizer in (self.world_optimizer, self.model_optimizer, self.policy_optimizer):
                 for group in optimizer.param_groups:
                     group["lr"] = lr
@@ -226,7 +227,7 @@ class Agent:
         """:meth:`task_state` from a task checkpoint; one written before the floor was saved takes the floor's
         schedule at the task's last step (``state["steps"]``), the same up to one iteration's updates."""
         self.heads.load_state_dict(state["learner"])
-        c = self.cfg
+        c = self.cfg.tdmpc
         self.std_floor = float(state.get("learner_std_floor", linear_schedule(
             c.std_schedule_start, c.min_std, c.std_schedule_steps, int(state.get("steps", 0)))))
 

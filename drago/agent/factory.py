@@ -30,13 +30,13 @@ __all__ = ["PETS", "TDMPC", "build_agent", "build_world_model", "build_world_opt
 
 
 def pets_config(cfg: Config) -> PetsConfig:
-    """The PETS agent's settings from ``cfg.agent``. The ensemble predicts states only: rewards are learned by
-    each agent's own head (or given), so the ensemble can be carried across tasks (docs: Methods, PETS)."""
-    a = cfg.agent
-    plan = PetsPlanSettings(horizon=a.pets_horizon, iterations=a.pets_iterations, population=a.pets_population,
-                            elites=a.pets_elites, particles=a.pets_particles, momentum=a.momentum,
-                            propagation=a.pets_propagation)
-    return PetsConfig(members=a.pets_members, hidden=a.pets_hidden, layers=a.pets_layers, lr=a.lr,
+    """The PETS agent's settings from ``cfg.agent.pets`` and the shared ``agent.lr``. The ensemble predicts states
+    only: rewards are learned by each agent's own head (or given), so the ensemble can be carried across tasks
+    (docs: Methods, PETS)."""
+    a, p = cfg.agent, cfg.agent.pets
+    plan = PetsPlanSettings(horizon=p.horizon, iterations=p.iterations, population=p.population, elites=p.elites,
+                            particles=p.particles, momentum=p.momentum, propagation=p.propagation)
+    return PetsConfig(members=p.members, hidden=p.hidden, layers=p.layers, lr=a.lr,
                       predict_reward=False, plan=plan, random_action_probs=a.random_action_probs)
 
 
@@ -54,7 +54,7 @@ TDMPC = register_agent_kind(AgentKind(
     name="tdmpc", description="TD-MPC: latent dynamics, reward, policy and twin Q heads, CEM planning (the paper's)",
     capabilities=TDMPC_CAPABILITIES, build_world_model=build_tdmpc_world_model,
     build_world_optimizer=_tdmpc_world_optimizer, build_agent=_tdmpc_agent,
-    replay_horizon=lambda cfg: cfg.agent.horizon))
+    replay_horizon=lambda cfg: cfg.agent.tdmpc.horizon))
 
 
 # ---- PETS (paper Appendix E) -----------------------------------------------------------------------------
@@ -72,12 +72,12 @@ def _known_reward(cfg: Config, task: str) -> RewardFn:
 def _pets_agent(cfg: Config, spec: EnvSpec, world_model: nn.Module, world_optimizer: torch.optim.Optimizer | None,
                 task: str | None = None, reviewer: bool = False) -> PetsAgent:
     """A PETS agent gets a fresh reward head of its own, as a TD-MPC agent gets fresh heads; with
-    ``agent.pets_reward=known`` the learner plans on the task's true reward instead, while the reviewer,
+    ``agent.pets.reward=known`` the learner plans on the task's true reward instead, while the reviewer,
     whose intrinsic reward exists only as labels of its data, always learns its own."""
     settings = pets_config(cfg)
-    if cfg.agent.pets_reward == "known" and not reviewer:
+    if cfg.agent.pets.reward == "known" and not reviewer:
         if task is None:
-            raise ValueError("a PETS learner with agent.pets_reward=known needs its task")
+            raise ValueError("a PETS learner with agent.pets.reward=known needs its task")
         return PetsAgent(world_model, world_optimizer, settings, spec.discrete, known_reward=_known_reward(cfg, task))
     device = next(world_model.parameters()).device
     head = RewardHead(spec.obs_dim, spec.action_dim, settings.hidden).to(device)
@@ -90,7 +90,7 @@ PETS = register_agent_kind(AgentKind(
     build_world_optimizer=lambda cfg, world_model: make_optimizer(world_model.ensemble, cfg.agent.lr),
     build_agent=_pets_agent,
     # Single transitions: pairs (H = 1, the buffer's least) whose two transitions both train it.
-    replay_horizon=lambda cfg: 1, told_reward=lambda cfg: cfg.agent.pets_reward == "known"))
+    replay_horizon=lambda cfg: 1, told_reward=lambda cfg: cfg.agent.pets.reward == "known"))
 
 
 # ---- what the trainer, the methods and the checkpoint loader call ---------------------------------------

@@ -73,7 +73,7 @@ class _SigmoidTanh(torch.autograd.Function):
 
 
 def tanh(x: torch.Tensor, fast: bool) -> torch.Tensor:
-    """``torch.tanh``, or with ``fast`` its sigmoid form (``agent.fast_tanh``, see :func:`_tanh_from_sigmoid`)."""
+    """``torch.tanh``, or with ``fast`` its sigmoid form (``agent.tdmpc.fast_tanh``, see :func:`_tanh_from_sigmoid`)."""
     if not fast:
         return torch.tanh(x)
     if torch.is_grad_enabled() and x.requires_grad:
@@ -258,7 +258,7 @@ class TaskHeads(nn.Module):
 def build_world_model(cfg: Config, spec: EnvSpec, device: torch.device | str = "cpu") -> WorldModel:
     """The world model a run of ``cfg`` on a domain of ``spec`` trains (and its checkpoints hold)."""
     # The grid's observations lie in [-1, 1]: its dynamics end in tanh (paper Appendix A).
-    return WorldModel(spec.obs_dim, spec.action_dim, cfg.agent.mlp_dim, cfg.agent.use_crelu,
+    return WorldModel(spec.obs_dim, spec.action_dim, cfg.agent.tdmpc.mlp_dim, cfg.agent.tdmpc.use_crelu,
                       squash=spec.discrete).to(device)
 
 

@@ -694,7 +694,7 @@ class PetsAgent:
 
     Rewards, three ways:
 
-    * ``reward_head`` (what drago's trainer builds, ``agent.pets_reward=learned``): the agent learns
+    * ``reward_head`` (what drago's trainer builds, ``agent.pets.reward=learned``): the agent learns
       r(s, a, s') with a :class:`RewardHead` of its own, over a :class:`PetsWorldModel` that predicts states
       only, and plans on the head's reward of each particle's transition. This is what the DRAGO paper's
       Appendix E implies: DRAGO-PETS runs the MiniGrid tasks with dense reward because the authors could not
@@ -702,7 +702,7 @@ class PetsAgent:
       sparse reward is almost always 0, so a learned reward and the predicted returns are flat), and
       DRAGO's tasks, its reviewer's reward included, reach the agent only through rewards in the data, as
       for TD-MPC's reward head.
-    * ``known_reward=r(s, a, s')`` evaluated on the predicted rows (``agent.pets_reward=known``): Chua et
+    * ``known_reward=r(s, a, s')`` evaluated on the predicted rows (``agent.pets.reward=known``): Chua et
       al.'s own setting, where each task's cost function is given.
     * neither: the ensemble learns the reward with the dynamics (``predict_reward``), the standalone form.
 

@@ -48,9 +48,9 @@ class AgentCapabilities:
             probes measure and swap them).
         shared_rollout: ``rollout(obs, actions)`` gives latents that two updates of one batch can share, and
             ``update(..., latents=...)`` takes them (DRAGO's learner and reviewer share one rollout).
-        sequence_loss: The world model learns from H-step sequences weighted by ``agent.consistency_coef``
+        sequence_loss: The world model learns from H-step sequences weighted by ``agent.tdmpc.consistency_coef``
             (replayed old transitions are weighted to match); without it, from single transitions of weight 1.
-        reduced_precision: Honours ``agent.precision`` and ``agent.compile``; without it the kind runs in
+        reduced_precision: Honours ``agent.tdmpc.precision`` and ``agent.tdmpc.compile``; without it the kind runs in
             float32, eager.
         plan_schedules: Its planner's horizon and CEM std floor follow schedules over updates (the
             pre-rollout's ``code`` planning resets the floor).

@@ -1,4 +1,5 @@
-"""The speed settings a run resolves on its own machine: ``agent.precision=auto`` and ``agent.compile=auto``.
+"""The speed settings a run resolves on its own machine: ``agent.tdmpc.precision=auto`` and
+``agent.tdmpc.compile=auto``.
 
 ``auto`` is each setting's default. A run resolves it once, when it starts, on the machine it starts on, and
 writes the choice into its ``config.yaml``: a resumed run (on this machine or another) keeps what it began
@@ -29,7 +30,7 @@ from drago.agent.protocol import capabilities_of
 from drago.config import AgentConfig, Config, ConfigError
 
 __all__ = ["BFLOAT16_MIN_WIDTH", "compile_cache_dir", "compile_problem", "fast_bfloat16", "resolve_agent_speed",
-           "resolve_speed", "speed_summary", "use_compile_cache"]
+           "resolve_speed", "speed_summary", "use_compile_cache", "with_speed"]
 
 #: The narrowest hidden width at which bfloat16 was measured to pay (docs: Benchmarks, the speed settings).
 BFLOAT16_MIN_WIDTH = 512
@@ -83,25 +84,30 @@ def resolve_agent_speed(agent: AgentConfig, device: torch.device) -> tuple[Agent
     chose the slower path, saying why. Forced values are checked: a forced compile that cannot work is a
     :class:`~drago.config.ConfigError`."""
     notes: list[str] = []
-    precision, compile_ = agent.precision, agent.compile
+    precision, compile_ = agent.tdmpc.precision, agent.tdmpc.compile
     if not capabilities_of(agent.kind).reduced_precision:
-        return dataclasses.replace(agent, precision="float32" if precision == "auto" else precision,
-                                   compile="false" if compile_ == "auto" else compile_), notes
+        return with_speed(agent, precision="float32" if precision == "auto" else precision,
+                          compile="false" if compile_ == "auto" else compile_), notes
     if precision == "auto":
         fast, why = fast_bfloat16(device)
-        wide = agent.mlp_dim >= BFLOAT16_MIN_WIDTH
+        wide = agent.tdmpc.mlp_dim >= BFLOAT16_MIN_WIDTH
         precision = "bfloat16" if fast and wide else "float32"
         if fast and not wide:
-            notes.append(f"agent.precision=auto chose float32: {why}, but width {agent.mlp_dim} is under "
+            notes.append(f"agent.tdmpc.precision=auto chose float32: {why}, but width {agent.tdmpc.mlp_dim} is under "
                          f"{BFLOAT16_MIN_WIDTH}, where bfloat16 does not pay")
     if compile_ != "false":
         problem = compile_problem(device)
         if problem is not None and compile_ == "true":
-            raise ConfigError(f"agent.compile=true cannot work here: {problem}; or set agent.compile=false")
+            raise ConfigError(f"agent.tdmpc.compile=true cannot work here: {problem}; or set agent.tdmpc.compile=false")
         if problem is not None:
-            notes.append(f"agent.compile=auto runs eager: {problem}")
+            notes.append(f"agent.tdmpc.compile=auto runs eager: {problem}")
         compile_ = "false" if problem is not None else "true"
-    return dataclasses.replace(agent, precision=precision, compile=compile_), notes
+    return with_speed(agent, precision=precision, compile=compile_), notes
+
+
+def with_speed(agent: AgentConfig, **speed: str) -> AgentConfig:
+    """A copy of ``agent`` with the given TD-MPC speed settings (``precision``, ``compile``) replaced."""
+    return dataclasses.replace(agent, tdmpc=dataclasses.replace(agent.tdmpc, **speed))
 
 
 def resolve_speed(cfg: Config, device: torch.device) -> tuple[Config, list[str]]:
@@ -114,8 +120,8 @@ def speed_summary(agent: AgentConfig) -> str:
     """The resolved speed settings in the words a run's first line uses, e.g. ``float32, compiled, fast tanh``."""
     if not capabilities_of(agent.kind).reduced_precision:
         return "float32, eager"
-    parts = [agent.precision, "compiled" if agent.compile == "true" else "eager"]
-    if agent.fast_tanh:
+    parts = [agent.tdmpc.precision, "compiled" if agent.tdmpc.compile == "true" else "eager"]
+    if agent.tdmpc.fast_tanh:
         parts.append("fast tanh")
     return ", ".join(parts)
 

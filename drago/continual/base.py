@@ -137,6 +137,9 @@ class ContinualMethod:
     #: Settings of the method's own, by name (a plug-in cannot add fields to drago's config): each is set as
     #: ``method.NAME=value`` and read with :meth:`setting` (docs: Extending drago, "Settings of your own").
     settings: dict[str, MethodSetting] = {}
+    #: The sections of ``method`` the method reads (``vae``, ``ewc``, ...): a setting of another section named
+    #: on the command line is an error, and the others are left out of a record's protocol.
+    reads: tuple[str, ...] = ()
 
     def __init__(self, cfg: Config, spec: EnvSpec, device: torch.device):
         self.cfg = cfg

@@ -13,14 +13,15 @@ from drago.continual.base import ContinualMethod
 
 
 class Curiosity(ContinualMethod):
-    """Continual TD-MPC whose critics value the world model's prediction error (``method.curiosity_coef``)."""
+    """Continual TD-MPC whose critics value the world model's prediction error (``method.curiosity.coef``)."""
 
     name = "curiosity"
+    reads = ("curiosity",)
     description = "continual TD-MPC with a prediction-error bonus c * e_t in the learner's TD target"
 
     def __init__(self, cfg, spec, device):
         super().__init__(cfg, spec, device)
-        self.curiosity_coef = cfg.method.curiosity_coef
+        self.curiosity_coef = cfg.method.curiosity.coef
 
     def update_options(self, task):
         return {"curiosity_coef": self.curiosity_coef}

@@ -48,12 +48,15 @@ class Drago(ContinualMethod):
     second_agent = True  # its reviewer
     #: train the VAE on every task (False: only on the first task, then frozen; pseudo-rehearsal)
     continual_vae = True
+    # Every variant builds and carries the generator and tracks the threshold theta (logged, and carried to the
+    # next task), with or without a reviewer to pay against it.
+    reads = ("vae", "rehearsal", "reviewer")
 
     def __init__(self, cfg, spec, device):
         super().__init__(cfg, spec, device)
         m = cfg.method
-        self.vae = VAE(spec.obs_dim + spec.action_dim, m.vae_hidden_dim, m.vae_latent_dim).to(device)
-        self.threshold = m.initial_threshold  # theta: fixed during a task, the previous task's EMA
+        self.vae = VAE(spec.obs_dim + spec.action_dim, m.vae.hidden_dim, m.vae.latent_dim).to(device)
+        self.threshold = m.reviewer.initial_threshold  # theta: fixed during a task, the previous task's EMA
         self.threshold_new: torch.Tensor | float = self.threshold
         self.tasks_seen = 0
         self.old_world_model = None
@@ -88,7 +91,7 @@ class Drago(ContinualMethod):
                                         reviewer=True)
             self.reviewer_buffer = task_replay(cfg, self.spec, task.budget.max_reviewer_steps, self.device)
             self.counts = None
-            if cfg.method.pseudo_counts:
+            if cfg.method.reviewer.pseudo_counts:
                 self.counts = (GridCounts(self.device) if self.spec.discrete
                                else ContinuousCounts(self.spec.obs_dim, self.device))
 
@@ -129,14 +132,16 @@ class Drago(ContinualMethod):
     def _intrinsic(self, obs, actions, next_obs):
         m = self.cfg.method
         return intrinsic_reward(self.old_world_model, self.world_model, obs, actions, next_obs,
-                                self.threshold - m.threshold_offset, m.cost_coef, m.intrinsic_reward)
+                                self.threshold - m.reviewer.threshold_offset, m.reviewer.cost_coef,
+                                m.reviewer.intrinsic_reward)
 
     # ---- one gradient iteration -----------------------------------------------------------------
     def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
         cfg, m = self.cfg, self.cfg.method
         B = cfg.agent.batch_size
-        rehearse = self.old_vae is not None and u % m.rehearsal_freq == 0
-        joint = (lambda: m.rehearsal_lambda * self._rehearsal(task)) if rehearse and m.rehearsal_mode == "joint" else None
+        rehearse = self.old_vae is not None and u % m.rehearsal.freq == 0
+        joint = ((lambda: m.rehearsal.weight * self._rehearsal(task)) if rehearse and m.rehearsal.mode == "joint"
+                 else None)
         metrics: dict[str, torch.Tensor] = {}
 
         learner_batch = task.buffer.sample(B, task.rng)
@@ -167,11 +172,11 @@ class Drago(ContinualMethod):
             self.reviewer_buffer.update_priorities(reviewer_batch.indices, out.pop("priority"))
             self._track_threshold(out["mean_prediction_score"])
             metrics.update({f"reviewer_{k}": v for k, v in out.items()})
-            vae_rows = combined if m.vae_data == "combined" else learner_batch
+            vae_rows = combined if m.vae.data == "combined" else learner_batch
 
         if self.trains_vae:
             metrics.update(self._vae_step(vae_rows))
-        if rehearse and m.rehearsal_mode == "separate":
+        if rehearse and m.rehearsal.mode == "separate":
             # Its own optimizer step of weight 1 and no grad clipping, as in the official code.
             loss = self._rehearsal(task)
             task.world_optimizer.zero_grad(set_to_none=True)
@@ -187,21 +192,21 @@ class Drago(ContinualMethod):
         return self._intrinsic(states, batch.actions, batch.next_obs).reward
 
     def _rehearsal(self, task: TaskState) -> torch.Tensor:
-        sample = self.old_vae.sample(self.cfg.method.rehearsal_batch)
+        sample = self.old_vae.sample(self.cfg.method.rehearsal.batch)
         states, actions = sample.split((self.spec.obs_dim, self.spec.action_dim), dim=-1)
         # Generated pairs are used raw (no one-hot projection), as in the official code (docs: Design, paper and code).
         # The dynamics run in the agent's precision; the small VAE and the intrinsic reward stay float32.
         with task.learner.autocast():
             return rehearsal_loss(task.world_model, self.old_world_model, states, actions,
-                                  self.cfg.method.rehearsal_target)
+                                  self.cfg.method.rehearsal.target)
 
     def _vae_step(self, rows: Batch) -> dict[str, torch.Tensor]:
         m = self.cfg.method
         x = torch.cat((rows.obs, rows.actions[0]), dim=-1)
         if self.old_vae is not None and self.continual_vae:
-            x = torch.cat((x, self.old_vae.sample(m.rehearsal_batch)))
+            x = torch.cat((x, self.old_vae.sample(m.rehearsal.batch)))
         reconstruction, mu, log_var = self.vae(x)
-        total, recon, kl = vae_loss(reconstruction, x, mu, log_var, m.vae_recon_coef, m.vae_kl_coef)
+        total, recon, kl = vae_loss(reconstruction, x, mu, log_var, m.vae.recon_coef, m.vae.kl_coef)
         self.vae_optimizer.zero_grad(set_to_none=True)
         total.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.vae.parameters(), VAE_GRAD_CLIP)
@@ -211,7 +216,7 @@ class Drago(ContinualMethod):
 
     def _track_threshold(self, score: torch.Tensor) -> None:
         # Kept as a tensor so the hot loop never waits for the device.
-        momentum = self.cfg.method.threshold_momentum
+        momentum = self.cfg.method.reviewer.threshold_momentum
         self.threshold_new = momentum * torch.as_tensor(self.threshold_new, dtype=score.dtype) + (1 - momentum) * score
 
     # ---- mid-task resume -------------------------------------------------------------------------
@@ -240,6 +245,7 @@ class DragoNoRehearsal(Drago):
     name = "drago-no-rehearsal"
     description = "DRAGO without synthetic rehearsal: reviewer only"
     use_rehearsal = False
+    reads = ("vae", "reviewer")
 
 
 class DragoNoReviewer(Drago):
@@ -259,7 +265,7 @@ class DragoSingleAgent(Drago):
     def config_problem(cls, cfg):
         if get_agent_kind(cfg.agent.kind).told_reward(cfg):
             return ("adds the intrinsic reward to the rewards the learner learns from, and a learner told the "
-                    "task's reward (agent.pets_reward=known) learns none; use agent.pets_reward=learned")
+                    "task's reward (agent.pets.reward=known) learns none; use agent.pets.reward=learned")
         return None
 
 

@@ -3,7 +3,7 @@
 At the end of every task the diagonal Fisher of the world model's consistency loss is estimated on that
 task's data and added to the Fisher accumulated over the earlier tasks; the world model it ended with
 becomes the anchor. During the next tasks the learner's world-model objective gets the quadratic
-penalty ``ewc_coef / 2 * sum_i F_i (theta_i - theta*_i)^2``.
+penalty ``method.ewc.coef / 2 * sum_i F_i (theta_i - theta*_i)^2``.
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def fisher_diagonal(world_model: nn.Module, batches: Iterable[SequenceBatch], ho
     :func:`consistency_loss`. This is the *batch* empirical Fisher (one squared gradient per minibatch,
     as in most EWC code), not the per-sample one: per-sample gradients of the 0.5M-parameter dynamics
     would cost B times the memory. It is therefore smaller than the per-sample Fisher by roughly the
-    batch size where the mean gradient vanishes; ``ewc_coef`` absorbs the scale. The consistency loss is
+    batch size where the mean gradient vanishes; ``method.ewc.coef`` absorbs the scale. The consistency loss is
     a Gaussian negative log-likelihood with fixed variance up to a constant factor, so its gradients
     are those of the log-likelihood the Fisher is defined on.
 
@@ -157,6 +157,7 @@ class EWC(ContinualMethod):
     """
 
     name = "ewc"
+    reads = ("ewc",)
     description = "continual TD-MPC with an EWC penalty (accumulated diagonal Fisher) on the world model"
 
     def __init__(self, cfg: Config, spec: EnvSpec, device: torch.device):
@@ -166,20 +167,20 @@ class EWC(ContinualMethod):
         self.tasks_seen = 0  # tasks whose Fisher is in ``self.fisher``
 
     def penalty(self, world_model: nn.Module) -> torch.Tensor:
-        """``ewc_coef / 2 * sum_i F_i (theta_i - theta*_i)^2`` for the current world model."""
+        """``method.ewc.coef / 2 * sum_i F_i (theta_i - theta*_i)^2`` for the current world model."""
         assert self.fisher is not None and self.anchor is not None
-        return 0.5 * self.cfg.method.ewc_coef * ewc_penalty(world_model, [self.anchor], [self.fisher])
+        return 0.5 * self.cfg.method.ewc.coef * ewc_penalty(world_model, [self.anchor], [self.fisher])
 
     def world_model_loss(self, task: TaskState) -> Callable[[], torch.Tensor] | None:
-        if self.fisher is None or self.cfg.method.ewc_coef <= 0:
+        if self.fisher is None or self.cfg.method.ewc.coef <= 0:
             return None
         return lambda: self.penalty(task.world_model)
 
     def end_task(self, task: TaskState) -> None:
         """Estimate this task's Fisher at the final world model, add it, and move the anchor there."""
         cfg = self.cfg
-        batches = (task.buffer.sample(cfg.agent.batch_size, task.rng) for _ in range(cfg.method.ewc_fisher_batches))
-        fisher = fisher_diagonal(task.world_model, batches, horizon=cfg.agent.horizon, rho=cfg.agent.rho)
+        batches = (task.buffer.sample(cfg.agent.batch_size, task.rng) for _ in range(cfg.method.ewc.fisher_batches))
+        fisher = fisher_diagonal(task.world_model, batches, horizon=cfg.agent.tdmpc.horizon, rho=cfg.agent.tdmpc.rho)
         if self.fisher is not None:
             fisher = {name: f + self.fisher[name] for name, f in fisher.items()}
         self.fisher = fisher

@@ -2,7 +2,7 @@
 
 A reservoir of single transitions (s, a, s') is kept across tasks, capped at the memory of DRAGO's
 generative model: the grid VAE's 21,638 parameters hold ~2,163 grid transitions at 10 floats per
-transition (docs: Methods, replay), the default of ``method.replay_capacity``. Every transition a task collected is offered to
+transition (docs: Methods, replay), the default of ``method.replay.capacity``. Every transition a task collected is offered to
 the reservoir when the task ends, so during task k it holds a uniform sample of tasks 1..k-1 and the
 world-model objective mixes those old rows with the task's own sequences.
 """
@@ -183,7 +183,7 @@ def replay_weight(consistency_coef: float, horizon: int, fraction: float) -> flo
         ValueError: ``f`` outside ``[0, 1)`` (a batch of old rows only has no new rows to weigh against).
     """
     if not 0.0 <= fraction < 1.0:
-        raise ValueError(f"method.replay_fraction must lie in [0, 1) for replay, got {fraction}")
+        raise ValueError(f"method.replay.fraction must lie in [0, 1) for replay, got {fraction}")
     return consistency_coef * fraction / ((1.0 - fraction) * horizon)
 
 
@@ -197,6 +197,7 @@ class Replay(ContinualMethod):
     """
 
     name = "replay"
+    reads = ("replay",)
     description = "continual TD-MPC with a bounded reservoir of old transitions mixed into world-model batches"
 
     def __init__(self, cfg: Config, spec: EnvSpec, device: torch.device):
@@ -204,11 +205,11 @@ class Replay(ContinualMethod):
         # A PETS ensemble's objective is its NLL averaged over single transitions with coefficient 1 (docs:
         # Methods, PETS): there an old transition weighs as a one-step sequence of coefficient 1.
         sequences = capabilities_of(cfg.agent.kind).sequence_loss
-        coef, steps = (cfg.agent.consistency_coef, cfg.agent.horizon) if sequences else (1.0, 1)
-        self.weight = replay_weight(coef, steps, cfg.method.replay_fraction)
+        coef, steps = (cfg.agent.tdmpc.consistency_coef, cfg.agent.tdmpc.horizon) if sequences else (1.0, 1)
+        self.weight = replay_weight(coef, steps, cfg.method.replay.fraction)
         # Own generator: the reservoir's draws never disturb the task's sampling stream.
         rng = np.random.default_rng(np.random.SeedSequence([cfg.train.seed, 0x5E5E7]))
-        self.reservoir = ReservoirBuffer(cfg.method.replay_capacity, spec.obs_dim, spec.action_dim, rng, device)
+        self.reservoir = ReservoirBuffer(cfg.method.replay.capacity, spec.obs_dim, spec.action_dim, rng, device)
 
     def world_model_loss(self, task: TaskState) -> Callable[[], torch.Tensor] | None:
         if not len(self.reservoir) or self.weight <= 0:

@@ -83,7 +83,7 @@ class Domain:
             (True: dense); a task left out has no default the reports can name.
         known_reward: ``known_reward(task, dense_reward)`` returns the task's true reward as a
             :data:`RewardFunction` of observations, for planners told the reward (PETS's
-            ``agent.pets_reward=known``) and zero-shot planning; None: the reward is known only to the env.
+            ``agent.pets.reward=known``) and zero-shot planning; None: the reward is known only to the env.
         exact_world: One of :data:`EXACT_WORLDS` when the domain's dynamics are that world's, whatever its
             tasks: coverage, heatmaps and visitation maps then apply to its runs (zero-shot planning and the
             component probes too, for tasks of the grid's catalogue, whose rewards and optima they read).

@@ -1,7 +1,7 @@
 """The grid's reward as a batched torch function of ``(obs, action, next_obs)``, exactly the env's.
 
 Planning needs it on predicted transitions: the zero-shot evaluation (:mod:`drago.eval.zero_shot`) and a
-PETS learner told the task's reward (``agent.pets_reward=known``; docs: Methods, PETS). It imports torch,
+PETS learner told the task's reward (``agent.pets.reward=known``; docs: Methods, PETS). It imports torch,
 so :mod:`drago.envs` does not import it.
 """
 

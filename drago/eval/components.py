@@ -67,6 +67,7 @@ from drago.agent.agent import Agent
 from drago.agent.buffer import Batch
 from drago.agent.networks import TaskHeads
 from drago.agent.protocol import capabilities_of
+from drago.agent.speed import with_speed
 from drago.config import AgentConfig
 from drago.envs.tasks import GridTask, get_grid_task
 from drago.envs import GRID_DOMAIN, exact_world
@@ -334,14 +335,14 @@ def refit_heads(model: torch.nn.Module, heads: TaskHeads, probe: GridProbe, cfg:
     """
     before = {k: v.detach().clone() for k, v in model.state_dict().items()}
     frozen = torch.optim.SGD(model.parameters(), lr=0.0)  # never stepped: train_world_model=False
-    cfg = dataclasses.replace(cfg, precision="float32", compile="false")
+    cfg = with_speed(cfg, precision="float32", compile="false")
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         agent = Agent(model, frozen, cfg, discrete=True)
         agent.heads.load_state_dict(heads.state_dict())
         generator = np.random.default_rng(seed)
         for step in range(int(updates)):
-            agent.update(_refit_batch(probe, cfg.horizon, generator), step, train_world_model=False)
+            agent.update(_refit_batch(probe, cfg.tdmpc.horizon, generator), step, train_world_model=False)
     for key, value in model.state_dict().items():
         if not torch.equal(value, before[key]):
             raise RuntimeError(f"the refit changed the world model's {key}; it must only train heads")
@@ -372,7 +373,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
     cfg, checkpoints = components_checkpoints(run_dir)
     name = f"{cfg.method.name}/seed{cfg.train.seed}"
     kind = cfg.agent.kind
-    horizon, discount = int(cfg.agent.horizon), float(cfg.agent.discount)
+    horizon, discount = int(cfg.agent.tdmpc.horizon), float(cfg.agent.tdmpc.discount)
     loaded = [load_task_checkpoint(c.path, device) for c in checkpoints]
     models = [c.world_model.eval() for c in loaded]
     heads: list[TaskHeads | None] = []
@@ -380,8 +381,8 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
         if not capabilities_of(kind).task_heads or "learner" not in c.data:
             heads.append(None)
             continue
-        h = TaskHeads(c.spec.obs_dim, c.spec.action_dim, c.config.agent.mlp_dim, True,
-                      fast_tanh=c.config.agent.fast_tanh)
+        h = TaskHeads(c.spec.obs_dim, c.spec.action_dim, c.config.agent.tdmpc.mlp_dim, True,
+                      fast_tanh=c.config.agent.tdmpc.fast_tanh)
         h.load_state_dict(c.data["learner"])
         heads.append(h.eval())
     lattices = [lattice_model(model_dynamics(model)) for model in models]

@@ -42,7 +42,7 @@ class StagePay:
         task: the task learned in that stage.
         next_task: the task whose reviewer is paid so.
         threshold: the θ the reviewer is paid against: the one saved by the stage's checkpoint, less the run's
-            ``method.threshold_offset``.
+            ``method.reviewer.threshold_offset``.
         old_term: (N,) r_old per transition of :func:`~drago.eval.coverage.grid_transitions`, in (0, 1).
         cost: (N,) c per transition (the current model is the old one when the task begins), in (0, 1).
         reward: (N,) r_old − α·c, what the reviewer plans for.
@@ -77,7 +77,7 @@ def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu", variant: str |
     ``variant`` and ``threshold`` ask "what would this reviewer have been paid" on the same checkpoints: the
     other form of the reward (``paper`` or ``code``, see
     :func:`~drago.continual.generative.intrinsic_reward`) or another θ than the run's. By default the
-    run's own form and θ (each checkpoint's, less ``method.threshold_offset``): what its reviewer was paid.
+    run's own form and θ (each checkpoint's, less ``method.reviewer.threshold_offset``): what its reviewer was paid.
 
     Raises:
         CoverageError: Not a grid run, or no task finished yet.
@@ -86,7 +86,7 @@ def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu", variant: str |
     cfg, checkpoints = run_checkpoints(run_dir)
     if not pays_a_reviewer(cfg.method.name):
         return []
-    variant = variant or cfg.method.intrinsic_reward
+    variant = variant or cfg.method.reviewer.intrinsic_reward
     if variant not in INTRINSIC_REWARDS:
         raise ConfigError(f"unknown intrinsic reward variant '{variant}'; valid: {', '.join(INTRINSIC_REWARDS)}")
     data = grid_transitions()
@@ -98,11 +98,12 @@ def reviewer_pay_of_run(run_dir: str | Path, device: str = "cpu", variant: str |
             continue
         loaded = load_task_checkpoint(checkpoint.path, device)
         if threshold is None:
-            theta = _saved_threshold(loaded.data, cfg.method.initial_threshold) - cfg.method.threshold_offset
+            reviewer = cfg.method.reviewer
+            theta = _saved_threshold(loaded.data, reviewer.initial_threshold) - reviewer.threshold_offset
         else:
             theta = threshold
         model = loaded.world_model.eval()
-        pay = intrinsic_reward(model, model, obs, actions, next_obs, theta, cfg.method.cost_coef, variant)
+        pay = intrinsic_reward(model, model, obs, actions, next_obs, theta, cfg.method.reviewer.cost_coef, variant)
         old_term, cost, reward = (t.double().cpu().numpy() for t in (pay.old_reward, pay.cost, pay.reward))
         rooms = {}
         for group in GROUPS:

@@ -229,7 +229,7 @@ def label_runs(runs: list[ReportedRun]) -> dict[str, list[ReportedRun]]:
     """Group runs by method, in order of first appearance, and split a method's runs wherever averaging them
     would mean nothing: by preset and by agent (``agent.kind``), and within one preset and agent by any
     setting of the method, the agent or the budget in which its runs differ, each shown as ``key=value``
-    (``drago-no-rehearsal [method.threshold_offset=3.0]``)."""
+    (``drago-no-rehearsal [method.reviewer.threshold_offset=3.0]``)."""
     variants: dict[str, set[tuple[str, str]]] = {}
     own = [_variant_settings(run) for run in runs]
     siblings: dict[tuple[str, str, str], list[dict[str, Any]]] = {}

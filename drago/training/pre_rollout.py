@@ -80,7 +80,7 @@ class PreRollout:
         self.planning = planning
         self.device = torch.device(device)
         if planning == "code" and learner.agent.capabilities.plan_schedules:
-            learner.agent.std_floor = learner.config.agent.std_schedule_start
+            learner.agent.std_floor = learner.config.agent.tdmpc.std_schedule_start
 
     @classmethod
     def from_config(cls, cfg: Config, run_dir: Path, device: torch.device | str = "cpu") -> PreRollout:

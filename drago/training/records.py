@@ -32,7 +32,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from drago.config import Config, ConfigError
+from drago.config import Config, ConfigError, applies, inapplicable_settings, migrate_flat
 from drago.training.rundir import (
     CHECKPOINT_FOLDER,
     CONFIG_FILE,
@@ -52,7 +52,9 @@ __all__ = ["RECORD_FORMAT", "RECORD_SUFFIX", "RECORD_VERSION", "RECORD_VIEW_FILE
            "record_view_meta", "run_protocol", "write_record"]
 
 RECORD_FORMAT = "drago-record"
-RECORD_VERSION = 1
+#: 2: the agent kinds' and the methods' settings in sections of their own (``agent.tdmpc.horizon``), and a
+#: protocol without the settings its agent kind and method do not read. Version 1 records are migrated on reading.
+RECORD_VERSION = 2
 RECORD_SUFFIX = ".json.gz"
 #: Written into a record view: the record's protocol and provenance, and the mark that the view has no checkpoints.
 RECORD_VIEW_FILE = "record.json"
@@ -76,7 +78,7 @@ class RecordError(RunDirError):
 
 # ---- protocol --------------------------------------------------------------------------------------
 def _protocol_settings(cfg: Config) -> dict[str, Any]:
-    idle = settings_without_effect(cfg)
+    idle = (*settings_without_effect(cfg), *inapplicable_settings(cfg))
     settings = {key: value for key, value in flat_settings(cfg).items() if key not in NOT_PROTOCOL and key not in idle}
     # Settings that were added after records existed and whose default changes nothing are left out at that
     # default, so the records made before them keep their protocol.
@@ -102,6 +104,28 @@ def run_protocol(run: Config, transfers: Mapping[str, Config], evaluations: Sequ
     return {"run": _protocol_settings(run),
             "transfers": {name: _protocol_settings(cfg) for name, cfg in sorted(transfers.items())},
             "evaluations": sorted(evaluations)}
+
+
+def _migrate_v1_settings(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """A version-1 protocol's settings as this version's: renamed keys under their new names, and without the
+    settings that the run's agent kind and method do not read (what :func:`_protocol_settings` leaves out)."""
+    settings = migrate_flat(dict(settings))
+    kind, method = settings.get("agent.kind", "tdmpc"), settings.get("method.name", "continual")
+    return {key: value for key, value in settings.items() if applies(key, kind, method)}
+
+
+def _migrate_v1(record: dict[str, Any]) -> dict[str, Any]:
+    protocol = record["protocol"]
+    migrated = {"run": _migrate_v1_settings(protocol.get("run") or {}),
+                "transfers": {name: _migrate_v1_settings(settings)
+                              for name, settings in (protocol.get("transfers") or {}).items()},
+                "evaluations": protocol.get("evaluations") or []}
+    resolved = record.get("provenance", {}).get("resolved")
+    if isinstance(resolved, dict):
+        record["provenance"]["resolved"] = migrate_flat(resolved)
+    record["protocol"] = {"digest": protocol_digest(migrated), **migrated}
+    record["version"] = RECORD_VERSION
+    return record
 
 
 def protocol_digest(protocol: Mapping[str, Any]) -> str:
@@ -231,6 +255,9 @@ def read_record(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict) or data.get("format") != RECORD_FORMAT:
         raise RecordError(f"{path} is not a drago run record (no format '{RECORD_FORMAT}')")
     version = data.get("version")
+    if version == 1 and isinstance(data.get("protocol"), dict):
+        data = _migrate_v1(data)
+        version = RECORD_VERSION
     if version != RECORD_VERSION:
         raise RecordError(f"record {path} has format version {version!r}; this drago reads version {RECORD_VERSION}: "
                           "use the drago release that wrote it")

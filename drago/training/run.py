@@ -45,7 +45,7 @@ def _prepare_process(cfg: Config) -> None:
     check_tracking(cfg)
     set_threads(cfg.train.threads)
     keep_freed_memory()
-    if cfg.agent.compile == "true":
+    if cfg.agent.tdmpc.compile == "true":
         use_compile_cache()
 
 

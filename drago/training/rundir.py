@@ -32,7 +32,7 @@ from typing import IO, Any
 
 import yaml
 
-from drago.config import Config
+from drago.config import Config, migrate_saved, setting_fields
 
 CONFIG_FILE = "config.yaml"
 SUMMARY_FILE = "summary.json"
@@ -43,7 +43,7 @@ TRANSFER_FOLDER = "transfer"
 WANDB_RUN_FILE = "wandb.json"
 VISITATION_FILE = "visitation.csv"  # grid runs: where each agent went (training/visitation.py)
 #: Agent settings whose default changed after runs were written without them: the value such a run used.
-LEGACY_AGENT_DEFAULTS = {"precision": "float32", "compile": "false", "fast_tanh": False}
+LEGACY_TDMPC_DEFAULTS = {"precision": "float32", "compile": "false", "fast_tanh": False}
 
 #: Settings that never make two runs "different runs": the thread count follows the machine (a study's
 #: --jobs), and where a run's results are also sent (Weights & Biases) changes none of them; a resumed run
@@ -54,7 +54,7 @@ SETTINGS_THAT_MAY_DIFFER: tuple[str, ...] = ("train.threads", "train.wandb", "tr
 
 #: Settings a run resolves for its machine when it starts (drago.agent.speed): ``auto`` wanted agrees with
 #: whatever the run chose.
-RESOLVED_AT_START: tuple[str, ...] = ("agent.precision", "agent.compile")
+RESOLVED_AT_START: tuple[str, ...] = ("agent.tdmpc.precision", "agent.tdmpc.compile")
 
 
 class RunDirError(ValueError):
@@ -138,11 +138,12 @@ def read_run_config(run_dir: str | Path) -> Config:
         raise RunDirError(f"{config_path} is not valid YAML ({str(err).splitlines()[0]})") from None
     if not isinstance(data, dict):
         raise RunDirError(f"{config_path} does not hold a drago config")
-    agent = data.get("agent")
-    if isinstance(agent, dict):
+    data = migrate_saved(data)
+    tdmpc = data.get("agent", {}).get("tdmpc") if isinstance(data.get("agent"), dict) else None
+    if isinstance(tdmpc, dict):
         # Runs written before these settings existed computed with their values of then, not today's defaults.
-        for key, then in LEGACY_AGENT_DEFAULTS.items():
-            agent.setdefault(key, then)
+        for key, then in LEGACY_TDMPC_DEFAULTS.items():
+            tdmpc.setdefault(key, then)
     return Config.from_dict(data)
 
 
@@ -261,15 +262,13 @@ def config_diffs(existing: Config, wanted: Config, ignore: Sequence[str] = SETTI
 
 
 def flat_settings(cfg: Config) -> dict[str, Any]:
-    """``{"section.key": value}`` of every setting, as a run's ``config.yaml`` stores it (tuples as lists)."""
-    return _flat(Config.from_dict(cfg.to_dict()).to_dict())
-
-
-def _flat(data: dict[str, Any]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update({f"{key}.{k}": v for k, v in value.items()})
-        else:
-            out[key] = value
+    """``{"section.key": value}`` of every setting (``agent.tdmpc.horizon``; a plug-in method's own settings as
+    one ``method.options`` mapping), as a run's ``config.yaml`` stores it (tuples as lists)."""
+    data = Config.from_dict(cfg.to_dict()).to_dict()
+    out: dict[str, Any] = {"preset": data["preset"]}
+    for key, _, _ in setting_fields():
+        value = data
+        for part in key.split("."):
+            value = value[part]
+        out[key] = value
     return out

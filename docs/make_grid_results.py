@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from drago.eval.stats import summarize
-from drago.study import DEFAULT_METHODS, DEFAULT_SEEDS
+from drago.study.plan import DEFAULT_METHODS, DEFAULT_SEEDS
 from drago.training.records import find_records, read_record
 
 DOCS = Path(__file__).resolve().parent

@@ -6,7 +6,7 @@ import os
 import sys
 
 from drago.cli import main
-from drago.study import PARENT_ENV, become_child
+from drago.study.local import PARENT_ENV, become_child
 
 if __name__ == "__main__":
     if os.environ.get(PARENT_ENV) and not become_child():

@@ -498,11 +498,11 @@ _SLURM_ONLY = (("--partition", "partition"), ("--account", "account"), ("--qos",
 def _cmd_study(args: argparse.Namespace) -> int:
     from drago.api import study, study_slurm
 
-    DEFAULT_EPISODES, DEFAULT_METHODS = study.DEFAULT_EPISODES, study.DEFAULT_METHODS
-    DEFAULT_PRESET, DEFAULT_SEEDS = study.DEFAULT_PRESET, study.DEFAULT_SEEDS
-    default_study_dir, describe_plan, parse_seeds = study.default_study_dir, study.describe_plan, study.parse_seeds
-    parse_cases = study.parse_cases
-    plan_study, run_study, write_report = study.plan_study, study.run_study, study.write_report
+    DEFAULT_EPISODES, DEFAULT_METHODS = study.plan.DEFAULT_EPISODES, study.plan.DEFAULT_METHODS
+    DEFAULT_PRESET, DEFAULT_SEEDS = study.plan.DEFAULT_PRESET, study.plan.DEFAULT_SEEDS
+    default_study_dir, describe_plan = study.plan.default_study_dir, study.plan.describe_plan
+    parse_seeds, parse_cases, plan_study = study.plan.parse_seeds, study.plan.parse_cases, study.plan.plan_study
+    run_study, write_report = study.local.run_study, study.report.write_report
 
     overrides, preset = list(args.overrides), args.preset
     if preset is not None and "=" in preset:  # `drago study key=value`: no preset named

@@ -1,6 +1,6 @@
 """``drago study --backend slurm``: the study's plan as SLURM batch jobs, submitted with submitit.
 
-The plan is the local backend's (:func:`drago.study.plan_study`): what each job does follows from its directory.
+The plan is the local backend's (:func:`drago.study.plan.plan_study`): what each job does follows from its directory.
 Here every job becomes a SLURM batch job, and the order is SLURM's to keep:
 
 * a run's transfers wait for it (``--dependency=afterok:RUN``), the report job for every job of the study
@@ -47,9 +47,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from drago.study import (DONE, LOCK_FILE, LOG_FOLDER, PARENT_ENV, RESUME, START, Job, StudyError, StudyPlan,
-                         directory_state, format_duration, job_outcome, job_wall_time, records_status, study_lock,
-                         summary_line, transfer_argv, write_report)
+from drago.study.local import LOCK_FILE, PARENT_ENV, study_lock
+from drago.study.plan import (DONE, LOG_FOLDER, RESUME, START, Job, StudyError, StudyPlan, directory_state,
+                              format_duration, job_outcome, job_wall_time, records_status, summary_line, transfer_argv)
+from drago.study.report import write_report
 from drago.training.rundir import CHECKPOINT_FOLDER, SUMMARY_FILE, atomic_write_text
 
 __all__ = ["SlurmOptions", "SlurmResult", "StudyJob", "Submission", "active_job_ids", "describe_resources",

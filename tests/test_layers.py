@@ -26,7 +26,6 @@ LAYER_OF = {
     "drago.eval": "eval",
     "drago.report": "report",
     "drago.study": "study",
-    "drago.study_slurm": "study",
     "drago.api": "api",
     "drago": "api",  # the package itself: lazy re-exports of drago.api
     "drago.cli": "cli",

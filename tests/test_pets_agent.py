@@ -140,7 +140,7 @@ def test_coverage_zero_shot_and_the_predictor_read_the_ensemble_mean(pets_runs):
 
 @pytest.mark.slow
 def test_the_four_grid_transfer_cases_run_from_a_pets_run_with_dense_reward(pets_runs, tmp_path, capsys):
-    from drago.study import plan_study
+    from drago.study.plan import plan_study
     from drago.envs import get_domain
     from drago.training.transfer import transfer_config
 

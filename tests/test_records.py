@@ -15,7 +15,8 @@ import pytest
 
 from drago import cli
 from drago.report.runs import ReportError, opened_runs
-from drago.study import DONE, START, plan_study, run_study
+from drago.study.local import run_study
+from drago.study.plan import DONE, START, plan_study
 from drago.training.records import RECORD_VERSION, RecordError, read_record, write_record
 
 METHODS = ("continual", "scratch")

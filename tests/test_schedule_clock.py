@@ -62,7 +62,7 @@ def test_the_clock_is_in_a_protocol_only_where_it_decides_something(method, deci
 
 @pytest.mark.parametrize("method, accepted", [("continual", True), ("drago", False)])
 def test_a_study_takes_over_a_run_whose_clock_cannot_matter(method, accepted, tmp_path):
-    from drago.study import StudyError, plan_study
+    from drago.study.plan import StudyError, plan_study
     from drago.training.rundir import write_run_config
 
     run_dir = tmp_path / method / "seed1"

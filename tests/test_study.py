@@ -17,10 +17,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from drago import cli, study
+from drago import cli
 from drago.continual.naive import Continual
-from drago.study import (DONE, RESUME, START, StudyError, describe_plan, parse_cases, parse_seeds, plan_study,
-                         run_study)
+from drago.study import local
+from drago.study.local import run_study
+from drago.study.plan import (DONE, RESUME, START, StudyError, available_cores, describe_plan, parse_cases, parse_seeds,
+                              plan_study)
 from drago.study_slurm import report_argv
 from helpers import crash_at_gradient_step, wait_for
 
@@ -182,7 +184,7 @@ def test_crash_then_the_same_command_finishes_with_the_logs_of_an_uninterrupted_
         reference, tmp_path, monkeypatch, capsys):
     out = tmp_path / "crashed"
     # The CLI's child processes run in this process here, so that the crash below reaches them.
-    monkeypatch.setattr(study, "_launch_process", lambda job: study._launch_in_process(job, cli.main))
+    monkeypatch.setattr(local, "_launch_process", lambda job: local._launch_in_process(job, cli.main))
     with crash_at_gradient_step(Continual, 5, task=2):  # episode 2 of room 3, after its checkpoint at step 100
         assert cli.main(study_argv(out)) == 1
     captured = capsys.readouterr()
@@ -218,9 +220,9 @@ def test_runs_start_before_the_transfers_they_unlock(tmp_path, monkeypatch):
 
     def launch(job, command):
         started.append(job.label)
-        return study._Done(0)
+        return local._Done(0)
 
-    monkeypatch.setattr(study, "_launch_in_process", launch)
+    monkeypatch.setattr(local, "_launch_in_process", launch)
     p = plan(tmp_path / "order", methods=("continual", "scratch"), jobs=1)
     run_study(p, echo=lambda line: None, in_process=cli.main)
     assert started[:2] == ["continual seed1", "scratch seed1"]
@@ -264,7 +266,7 @@ def test_a_folder_holding_something_else_is_a_one_line_error(reference, tmp_path
     else:
         import fcntl
 
-        handle = (reference / study.LOCK_FILE).open("w")
+        handle = (reference / local.LOCK_FILE).open("w")
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         expected = ("another `drago study`", str(reference))
     try:
@@ -327,7 +329,7 @@ def test_jobs_run_in_parallel_child_processes_with_their_own_logs(tmp_path, caps
         assert json.loads((out / "scratch" / f"seed{seed}" / "summary.json").read_text())["complete"] is True
     threads = {yaml.safe_load((out / "scratch" / f"seed{s}" / "config.yaml").read_text())["train"]["threads"]
                for s in (1, 2)}
-    assert threads == {max(1, study.available_cores() // 2)}
+    assert threads == {max(1, available_cores() // 2)}
     assert (out / "report" / "report.html").is_file()
 
 
@@ -343,7 +345,7 @@ def alive(pid: int) -> bool:
 def test_a_child_dies_with_its_study(tmp_path):
     """A SIGKILLed study leaves no orphan that would race the next study for a run directory."""
     pid_file = tmp_path / "child.pid"
-    child = ("import os, time; from drago.study import _die_with_parent; _die_with_parent(); "
+    child = ("import os, time; from drago.study.local import _die_with_parent; _die_with_parent(); "
              f"open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(60)")
     parent = subprocess.Popen([sys.executable, "-c", "import subprocess, sys, time; "
                                f"subprocess.Popen([sys.executable, '-c', {child!r}]); time.sleep(60)"])

@@ -23,7 +23,8 @@ from pathlib import Path
 import pytest
 
 from drago import cli, study_slurm
-from drago.study import plan_study, run_study
+from drago.study.local import run_study
+from drago.study.plan import plan_study
 from drago.study_slurm import StudyError, gpu_for, make_options, parse_time
 
 # The fixtures slurm_cluster (session) and slurm_env (per test) come from tests/slurm_cluster.py, a plugin module.

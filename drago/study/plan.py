@@ -1,7 +1,7 @@
-"""The grid study in one command (``drago study``): every method x seed on the task sequence, the
-paper's transfer cases of every run, and one report.
+"""The plan of a study (``drago study``): every method x seed on the task sequence, the paper's transfer cases
+of every run, and one report, worked out from what is on disk. Nothing here starts a process.
 
-A study is a plan of jobs, each one ``drago`` command line, worked out from what is on disk:
+A study is a plan of jobs, each one ``drago`` command line:
 
 * one sequence run per (method, seed) in ``OUT/METHOD/seedS``: ``drago train`` if it was never
   started, ``drago resume`` if it was interrupted, nothing if its ``summary.json`` says it is complete;
@@ -23,25 +23,16 @@ Because the plan is computed afresh from the directories, running the same comma
 crash (a failed run, Ctrl-C, a SIGKILL of the study itself) finishes the study without redoing finished
 work. A directory holding a run with other settings than the study's is an error, never mixed in.
 
-Jobs run as child processes, ``jobs`` at a time, each new run with ``train.threads`` = cores // jobs;
-each child's output goes to ``OUT/logs/``. A child dies with the study (Linux), so a restarted study
-never races an orphan for a run directory, and a lock file keeps two studies out of one folder.
-On a SLURM cluster the same plan runs as batch jobs instead (:mod:`drago.study_slurm`).
+The plan is carried out by a backend: child processes on this machine (:mod:`drago.study.local`) or SLURM
+batch jobs (:mod:`drago.study.slurm`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import signal
 import statistics
-import subprocess
-import sys
-import time
-import traceback
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -65,17 +56,16 @@ from drago.training.transfer import (
     transfer_config,
 )
 
-__all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "StudyResult",
-           "default_study_dir", "describe_plan", "directory_state", "parse_cases", "parse_seeds", "plan_study",
-           "record_path", "record_units", "records_status", "run_study", "write_report"]
+__all__ = ["DEFAULT_METHODS", "DEFAULT_PRESET", "DEFAULT_SEEDS", "Job", "StudyError", "StudyPlan", "available_cores",
+           "default_study_dir", "describe_plan", "directory_state", "format_duration", "job_outcome", "job_wall_time",
+           "parse_cases", "parse_seeds", "plan_study", "record_path", "record_verdict", "records_status",
+           "summary_line", "transfer_argv"]
 
 DEFAULT_PRESET = "minigrid-cpu"
 DEFAULT_METHODS = ("drago", "continual", "ewc", "scratch", "replay", "drago-no-rehearsal", "drago-no-reviewer")
 DEFAULT_SEEDS = (1, 2, 3)
 LOG_FOLDER = "logs"
 REPORT_FOLDER = "report"
-LOCK_FILE = ".study.lock"
-PARENT_ENV = "DRAGO_STUDY_PARENT"
 
 START, RESUME, DONE = "start", "resume", "done"
 
@@ -389,7 +379,7 @@ def _wanted_protocol(plan: StudyPlan, cfg: Config, run_dir: Path,
     return unit_protocol(cfg, transfers)
 
 
-def _record_verdict(path: Path, protocol: dict[str, Any]) -> str | None:
+def record_verdict(path: Path, protocol: dict[str, Any]) -> str | None:
     """None when ``path`` is a readable record with ``protocol``; else why it is not used (one phrase)."""
     from drago.training.records import protocol_digest
 
@@ -409,7 +399,7 @@ def _plan_recorded_unit(plan: StudyPlan, cfg: Config, run_dir: Path, label: str,
     """Add a unit whose record has the study's protocol as done jobs; False (nothing added) otherwise."""
     protocol = _wanted_protocol(plan, cfg, run_dir, kept)
     path = record_path(plan.records, cfg.method.name, cfg.train.seed)
-    verdict = _record_verdict(path, protocol)
+    verdict = record_verdict(path, protocol)
     if verdict is not None:
         if verdict != "missing":
             plan.notes.append(f"not used, its unit runs again and a new record replaces it: {verdict}")
@@ -561,7 +551,8 @@ def describe_plan(plan: StudyPlan, verbose: bool = False, resources: Sequence[st
                   f"{f' with {plan.transfer_reward} reward' if plan.transfer_reward else ''}, "
                   f"evaluated after every {'' if plan.transfer_eval_every == 1 else f'{plan.transfer_eval_every} '}"
                   f"episode{'s' * (plan.transfer_eval_every != 1)}"
-                  f"{'' if plan.transfer_few_shot_episodes is None else f', few-shot score after {plan.transfer_few_shot_episodes}'}"]
+                  + ("" if plan.transfer_few_shot_episodes is None
+                     else f", few-shot score after {plan.transfer_few_shot_episodes}")]
     if resources is None:
         lines.append(f"  jobs:      {plan.jobs} at a time on {plan.cores} core{'s' * (plan.cores != 1)}, new runs with "
                      f"train.threads={plan.threads}; each job's output in {plan.out / LOG_FOLDER}/")
@@ -589,28 +580,8 @@ def describe_plan(plan: StudyPlan, verbose: bool = False, resources: Sequence[st
 
 
 # ---------------------------------------------------------------------------------------------------
-# running
+# reading what the jobs did
 # ---------------------------------------------------------------------------------------------------
-@dataclass
-class StudyResult:
-    """What a study invocation did."""
-
-    plan: StudyPlan
-    finished: list[Job]
-    failed: list[Job]
-    blocked: list[Job]
-    report: list[Path]
-    report_error: str | None = None
-
-    @property
-    def ok(self) -> bool:
-        return not self.failed and not self.blocked and self.report_error is None
-
-    def summary_line(self) -> str:
-        failures = [(job, f"exit {job.returncode}, log {job.log}") for job in self.failed]
-        return summary_line(self.plan, self.finished, failures, self.blocked, self.report_error)
-
-
 def summary_line(plan: StudyPlan, finished: Sequence[Job], failures: Sequence[tuple[Job, str]],
                  blocked: Sequence[Job], report_error: str | None, ran: str = "run") -> str:
     """The last line of a study command, for any backend: complete, or what failed and how to go on.
@@ -634,89 +605,6 @@ def summary_line(plan: StudyPlan, finished: Sequence[Job], failures: Sequence[tu
     return f"study incomplete: {'; '.join(parts)}; run the same command again to continue"
 
 
-def _waits_for(job: Job) -> list[Job]:
-    return [*([job.source] if job.source is not None else []), *job.needs]
-
-
-class _Done:
-    """A job run in this process: finished when launched."""
-
-    def __init__(self, returncode: int):
-        self.returncode = returncode
-
-    def poll(self) -> int:
-        return self.returncode
-
-
-def _header(job: Job) -> str:
-    return f"\n==== {datetime.now().strftime('%Y-%m-%d %H:%M:%S')} drago {' '.join(job.argv)}\n"
-
-
-def _launch_process(job: Job) -> subprocess.Popen:
-    job.log.parent.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, PARENT_ENV: str(os.getpid()), "PYTHONUNBUFFERED": "1"}
-    if job.threads > 0:
-        env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(job.threads)
-    with job.log.open("a") as log:
-        log.write(_header(job))
-        log.flush()
-        return subprocess.Popen([sys.executable, "-m", "drago", *job.argv], stdin=subprocess.DEVNULL,
-                                stdout=log, stderr=subprocess.STDOUT, env=env)
-
-
-def _launch_in_process(job: Job, command: Callable[[list[str]], int]) -> _Done:
-    job.log.parent.mkdir(parents=True, exist_ok=True)
-    with job.log.open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
-        log.write(_header(job))
-        try:
-            code = command(job.argv)
-        except Exception:  # a crash of the run, as a child process would exit with it
-            traceback.print_exc(file=log)
-            code = 1
-    if code == 130:  # the command line turned Ctrl-C into exit code 130
-        raise KeyboardInterrupt
-    return _Done(code)
-
-
-@contextlib.contextmanager
-def study_lock(out: Path):
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / LOCK_FILE
-    with path.open("w") as handle:
-        try:
-            import fcntl
-        except ImportError:  # not POSIX: no lock
-            yield
-            return
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise StudyError(f"another `drago study` is working in {out} (it holds {path}); "
-                             "wait for it to finish or stop it first") from None
-        handle.write(f"{os.getpid()}\n")
-        handle.flush()
-        yield
-
-
-def _stop(running: dict[Job, Any]) -> None:
-    """Interrupt the children and wait for them, killing those that linger.
-
-    SIGTERM rather than SIGINT: children inherit an ignored SIGINT from a study started in the background,
-    and ``drago`` handles SIGTERM as it does Ctrl-C.
-    """
-    for handle in running.values():
-        if isinstance(handle, subprocess.Popen) and handle.poll() is None:
-            handle.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + 15
-    for handle in running.values():
-        if isinstance(handle, subprocess.Popen):
-            try:
-                handle.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                handle.kill()
-                handle.wait()
-
-
 def job_outcome(job: Job) -> str:
     """A short result of a finished job for its console line."""
     if job.kind == "record":
@@ -732,124 +620,6 @@ def job_outcome(job: Job) -> str:
         return ("final eval, of optimal: " + ", ".join(ends)) if ends else ""
     except (RunDirError, KeyError, TypeError):
         return ""
-
-
-def run_study(plan: StudyPlan, echo: Callable[[str], None] = print,
-              in_process: Callable[[list[str]], int] | None = None, poll_seconds: float = 0.2) -> StudyResult:
-    """Run every unfinished job of ``plan``, then write the report.
-
-    Jobs run ``plan.jobs`` at a time as child processes (``python -m drago ARGS``, which is ``drago ARGS``
-    dying with this process), their output appended to ``job.log``. Runs start before transfers
-    (with records, a unit's transfers and record before new runs); a transfer starts once its run has
-    finished; if the run fails, its transfers are not started.
-    ``in_process``, the command line's ``main``, runs the jobs one after the other in this process
-    instead (for tests: a patched function is seen by the runs).
-
-    Raises:
-        StudyError: Another study holds the folder's lock.
-        KeyboardInterrupt: After the running children were interrupted and have exited.
-    """
-    launch: Callable[[Job], Any] = (_launch_process if in_process is None
-                                    else lambda job: _launch_in_process(job, in_process))
-    todo = [job for job in [*plan.ordered, *plan.record_jobs] if job.state != DONE]
-    total, count = len(todo), 0
-    finished: list[Job] = []
-    running: dict[Job, Any] = {}
-
-    def line(job: Job, text: str) -> None:
-        nonlocal count
-        count += 1
-        echo(f"[{count}/{total}] {text}")
-
-    with study_lock(plan.out):
-        try:
-            while todo or running:
-                for job in [j for j in todo if any(n.status in ("failed", "blocked") for n in _waits_for(j))]:
-                    todo.remove(job)
-                    job.status = "blocked"
-                    why = "its run" if job.kind == "transfer" else "a job of its unit"
-                    line(job, f"not started: {job.label} ({why} failed)")
-                # Without records, runs before transfers: a run is the longest job and unlocks four, so
-                # starting runs first keeps the cores busy to the end instead of leaving one last run alone.
-                # With records, finishing units comes first (record, then transfers): a study stopped at any
-                # time keeps every unit it could finish.
-                order = ("record", "transfer", "run") if plan.records is not None else ("run", "transfer")
-                ready = sorted((j for j in todo if all(n.status == "done" for n in _waits_for(j))),
-                               key=lambda j: order.index(j.kind))
-                while ready and len(running) < plan.jobs:
-                    job = ready.pop(0)
-                    todo.remove(job)
-                    job.status, job.seconds = "running", time.monotonic()
-                    running[job] = launch(job)
-                ended = [(job, handle.poll()) for job, handle in running.items()]
-                ended = [(job, code) for job, code in ended if code is not None]
-                if not ended:
-                    if not running and todo:  # cannot happen: every transfer waits on a run of the plan
-                        raise RuntimeError(f"study jobs wait on nothing: {', '.join(j.label for j in todo)}")
-                    time.sleep(poll_seconds)
-                    continue
-                for job, code in ended:
-                    del running[job]
-                    job.returncode, job.seconds = code, time.monotonic() - job.seconds
-                    mismatch = _record_verdict(job.record, job.protocol) if code == 0 and job.kind == "record" else None
-                    if mismatch:  # the next study would run the unit again: say so now, not then
-                        code = job.returncode = 1
-                        with job.log.open("a") as log:
-                            log.write(f"drago study: the record does not have the study's protocol: {mismatch}\n")
-                    if code == 0:
-                        job.status = "done"
-                        finished.append(job)
-                        outcome = job_outcome(job)
-                        line(job, f"done    {job.label} in {format_duration(job.seconds)}"
-                             + (f": {outcome}" if outcome else ""))
-                    else:
-                        job.status = "failed"
-                        line(job, f"FAILED  {job.label} (exit {code}); log: {job.log}")
-        except KeyboardInterrupt:
-            _stop(running)
-            raise
-        report, error = _write_report(plan, echo)
-    failed = [j for j in plan.ordered if j.status == "failed"]
-    blocked = [j for j in plan.ordered if j.status == "blocked"]
-    return StudyResult(plan, finished, failed, blocked, report, error)
-
-
-# ---------------------------------------------------------------------------------------------------
-# report
-# ---------------------------------------------------------------------------------------------------
-def write_report(plan: StudyPlan, echo: Callable[[str], None] = print) -> tuple[list[Path], str | None]:
-    """The study's report from what is on disk (``drago study --report-only``, a SLURM study's last job).
-
-    Returns:
-        The files written, and why none were (None when written).
-    """
-    return _write_report(plan, echo)
-
-
-def record_units(plan: StudyPlan, echo: Callable[[str], None] = print) -> list[Path]:
-    """Record every finished unit of a study with a records folder whose record is missing or has another
-    protocol (what a SLURM study's report job does before its report; the local backend records each unit as
-    it finishes). Returns the records written.
-
-    Raises:
-        RecordError: a finished unit that cannot be recorded, or whose record lacks the study's protocol.
-    """
-    from drago.eval.unit import record_unit
-
-    written = []
-    for run in plan.runs:
-        if run.record is None or run.recorded or _record_verdict(run.record, run.protocol) is None:
-            continue
-        mine = [t for t in plan.transfers if (t.method, t.seed) == (run.method, run.seed)]
-        if not all(is_complete(job.directory) for job in (run, *mine)):
-            continue
-        record_unit(run.directory, run.record)
-        mismatch = _record_verdict(run.record, run.protocol)
-        if mismatch:
-            raise RecordError(f"the record of {run.label} does not have the study's protocol: {mismatch}")
-        echo(f"recorded {run.label}: {run.record}")
-        written.append(run.record)
-    return written
 
 
 def records_status(plan: StudyPlan) -> list[str]:
@@ -890,62 +660,3 @@ def records_status(plan: StudyPlan) -> list[str]:
             estimate += f"; not counted: {', '.join(unknown)}"
         lines.append(f"  cost:    {estimate}")
     return lines
-
-
-def _report_sources(plan: StudyPlan) -> list[Path]:
-    """What the report reads of each unit: its record where it has one with the study's protocol, else its
-    run directory (a unit not yet recorded); a record of another protocol is never mixed in."""
-    sources = []
-    for run in plan.runs:
-        if run.record is not None and _record_verdict(run.record, run.protocol) is None:
-            sources.append(run.record)
-        elif is_run_dir(run.directory):
-            sources.append(run.directory)
-    return sources
-
-
-def _write_report(plan: StudyPlan, echo: Callable[[str], None]) -> tuple[list[Path], str | None]:
-    from drago.report import build_report, write_transfer_tables
-    from drago.report.runs import find_transfer_dirs, opened_runs
-    from drago.training.checkpoint import CheckpointError
-
-    try:
-        if plan.records is not None:
-            record_units(plan, echo)
-        sources = _report_sources(plan)
-        if not sources:
-            return [], "no run of the study has started"
-        paths = list(build_report(sources, plan.report_dir))
-        with opened_runs(sources) as found:
-            names = {case: (f"{shown}: {case.relative_to(view)}" if view != Path(shown) else str(case))
-                     for view, shown in found for case in find_transfer_dirs(view)}
-            paths += write_transfer_tables(list(names), plan.report_dir, names)
-    except (RunDirError, ConfigError, CheckpointError) as err:
-        echo(f"report not written: {err}")
-        return [], str(err)
-    for path in paths:
-        echo(f"wrote {path}")
-    return paths, None
-
-
-# ---------------------------------------------------------------------------------------------------
-# a study's child process
-# ---------------------------------------------------------------------------------------------------
-def _die_with_parent() -> None:
-    """Ask Linux to SIGKILL this process when its parent (the study) dies; elsewhere do nothing."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
-def become_child() -> bool:
-    """Make this process a study job that does not outlive its study; False if the study is already gone.
-
-    ``python -m drago`` calls it when it was started by a study (the study sets the variable it reads).
-    """
-    _die_with_parent()
-    parent = os.environ.get(PARENT_ENV)
-    return not (parent and os.getppid() != int(parent))  # the study died before the line above took effect

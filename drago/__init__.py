@@ -14,7 +14,7 @@ __version__ = "0.1.0"
 def __getattr__(name: str) -> Any:
     # A submodule that is being imported is looked up here first: answer at once, without importing the API.
     if name.startswith("_") or name in ("api", "cli", "config", "envs", "agent", "continual", "training", "eval",
-                                        "report", "seeding", "study", "study_slurm"):
+                                        "report", "seeding", "study"):
         raise AttributeError(f"module 'drago' has no attribute '{name}'")
     import drago.api
 

@@ -17,7 +17,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import drago.study as study  # studies: plan_study, run_study, describe_plan, ...
-import drago.study_slurm as study_slurm  # the SLURM backend of drago study
+import drago.study.slurm.monitoring  # noqa: F401 - the SLURM backend of drago study, as study.slurm
+import drago.study.slurm.options  # noqa: F401
+import drago.study.slurm.submission  # noqa: F401
 import drago.agent.factory  # noqa: F401 - registers the built-in agent kinds
 from drago.agent.protocol import (AgentCapabilities, AgentKind, ContinualAgent, agent_kinds, get_agent_kind,
                                   register_agent_kind)
@@ -78,7 +80,7 @@ __all__ = [
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",
     "describe_settings", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
     "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",
-    "resolve_speed", "run_paper_cases", "run_transfer", "speed_summary", "study", "study_slurm", "task_descriptions",
+    "resolve_speed", "run_paper_cases", "run_transfer", "speed_summary", "study", "task_descriptions",
     "train",
 ]
 

@@ -496,7 +496,9 @@ _SLURM_ONLY = (("--partition", "partition"), ("--account", "account"), ("--qos",
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
-    from drago.api import study, study_slurm
+    from drago.api import study
+
+    slurm_options, submission_, monitoring = study.slurm.options, study.slurm.submission, study.slurm.monitoring
 
     DEFAULT_EPISODES, DEFAULT_METHODS = study.plan.DEFAULT_EPISODES, study.plan.DEFAULT_METHODS
     DEFAULT_PRESET, DEFAULT_SEEDS = study.plan.DEFAULT_PRESET, study.plan.DEFAULT_SEEDS
@@ -524,14 +526,14 @@ def _cmd_study(args: argparse.Namespace) -> int:
     slurm = args.backend == "slurm"
     out, jobs, cores, options = args.out, (1 if args.jobs is None else args.jobs), None, None
     if slurm:
-        options = study_slurm.make_options(partition=args.partition, account=args.account, qos=args.qos,
+        options = slurm_options.make_options(partition=args.partition, account=args.account, qos=args.qos,
                                            time=args.time, cpus=args.cpus, gpus=args.gpus, mem=args.mem,
                                            sbatch=args.sbatch, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu)
         if not (args.status or args.report_only):
-            study_slurm.require_submitit()
+            slurm_options.require_submitit()
         # The jobs run elsewhere: every path they are given is absolute.
         out = (out or default_study_dir(preset)).absolute()
-        overrides = study_slurm.job_overrides(options, overrides)
+        overrides = slurm_options.job_overrides(options, overrides)
         jobs, cores = options.runs_per_job, max(options.cpus, options.runs_per_job)  # threads = CPUs / runs, >= 1
     else:
         given = [flag for flag, name in _SLURM_ONLY if getattr(args, name) not in (None, [])]
@@ -546,7 +548,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
                       records=None if args.records is None else (args.records.absolute() if slurm else args.records))
     echo = lambda line: print(line, flush=True)  # noqa: E731
     if args.status:
-        for line in study_slurm.status_lines(plan):
+        for line in monitoring.status_lines(plan):
             echo(line)
         return 0
     if args.report_only:
@@ -555,27 +557,27 @@ def _cmd_study(args: argparse.Namespace) -> int:
             print(f"drago: no report: {error}", file=sys.stderr)
             return 1
         return 0
-    resources = study_slurm.describe_resources(options, plan) if slurm else None
+    resources = submission_.describe_resources(options, plan) if slurm else None
     for line in describe_plan(plan, verbose=args.dry_run, resources=resources):
         echo(line)
     if args.dry_run:
         if slurm:
-            for line in study_slurm.describe_submission(plan, options):
+            for line in submission_.describe_submission(plan, options):
                 echo(line)
         return 0
     if slurm:
         with _on_interrupt("run the same `drago study` command again: it submits what is missing, never a "
                            "job SLURM still has"):
-            submission = study_slurm.submit_study(plan, options, echo=echo)
+            submission = submission_.submit_study(plan, options, echo=echo)
         if submission.report_error:
             print(f"drago: no report: {submission.report_error}", file=sys.stderr)
             return 1
         if not args.wait:
             return 0
         with _on_interrupt("the jobs carry on in SLURM; the same command with --status shows them"):
-            result = study_slurm.wait_study(submission, echo=echo)
+            result = monitoring.wait_study(submission, echo=echo)
     else:
-        active = study_slurm.active_job_ids(plan.out)
+        active = monitoring.active_job_ids(plan.out)
         if active:
             raise UsageError(f"SLURM jobs of this study are queued or running in {plan.out} (jobs "
                              f"{', '.join(active)}); follow them with --backend slurm --status, or scancel them first")

@@ -242,7 +242,7 @@ def test_the_same_command_in_a_fresh_git_clone_skips_every_unit(recorded, tmp_pa
 
 
 def test_a_slurm_studys_report_job_records_the_units_before_its_report(tmp_path):
-    from drago.study_slurm import report_argv
+    from drago.study.slurm.submission import report_argv
 
     argv = report_argv(plan(tmp_path / "s", tmp_path / "r"))
     assert argv[argv.index("--records") + 1] == str(tmp_path / "r") and "--report-only" in argv

@@ -23,7 +23,7 @@ from drago.study import local
 from drago.study.local import run_study
 from drago.study.plan import (DONE, RESUME, START, StudyError, available_cores, describe_plan, parse_cases, parse_seeds,
                               plan_study)
-from drago.study_slurm import report_argv
+from drago.study.slurm.submission import report_argv
 from helpers import crash_at_gradient_step, wait_for
 
 METHODS = ("continual", "scratch")

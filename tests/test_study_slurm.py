@@ -22,10 +22,11 @@ from pathlib import Path
 
 import pytest
 
-from drago import cli, study_slurm
+from drago import cli
 from drago.study.local import run_study
-from drago.study.plan import plan_study
-from drago.study_slurm import StudyError, gpu_for, make_options, parse_time
+from drago.study.plan import StudyError, plan_study
+from drago.study.slurm.node import Member, StudyJob, gpu_for
+from drago.study.slurm.options import make_options, parse_time
 
 # The fixtures slurm_cluster (session) and slurm_env (per test) come from tests/slurm_cluster.py, a plugin module.
 pytest_plugins = ("slurm_cluster",)
@@ -170,7 +171,7 @@ class Mine(logging.StreamHandler):
         closed.append(True)
         super().close()
 logging.getLogger("mine").addHandler(Mine())
-from drago.study_slurm import require_submitit
+from drago.study.slurm.options import require_submitit
 require_submitit()
 print(closed, os.environ.get("SUBMITIT_LOG_LEVEL"))
 """
@@ -199,9 +200,9 @@ def test_status_of_a_local_study_reads_the_directories(reference, capsys):
 # ---------------------------------------------------------------------------------------------------
 # The function a SLURM job runs, called here without SLURM
 # ---------------------------------------------------------------------------------------------------
-def _members(out: Path, settings: list[str], methods=("continual",)) -> list[study_slurm.Member]:
+def _members(out: Path, settings: list[str], methods=("continual",)) -> list[Member]:
     plan = plan_study("smoke", methods, [1], out=out, overrides=settings, transfers=False)
-    return [study_slurm.Member(j.label, j.kind, str(j.directory), j.argv, str(j.log), j.threads) for j in plan.runs]
+    return [Member(j.label, j.kind, str(j.directory), j.argv, str(j.log), j.threads) for j in plan.runs]
 
 
 @pytest.mark.slow
@@ -209,7 +210,7 @@ def test_a_job_runs_its_runs_side_by_side_each_on_its_gpu(tmp_path, monkeypatch)
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,6")  # as SLURM sets it for a job given two GPUs
     settings = [*TINY, "train.steps_per_task=200"]
     members = _members(tmp_path / "shared", settings, methods=METHODS)
-    job = study_slurm.StudyJob(members, gpus=2, jobs_per_gpu=1, time_limit_s=600)
+    job = StudyJob(members, gpus=2, jobs_per_gpu=1, time_limit_s=600)
     assert job() == {"continual seed1": 0, "scratch seed1": 0}
     for member, device in zip(members, ("5", "6")):
         log = Path(member.log).read_text()
@@ -226,7 +227,7 @@ def test_stopped_near_the_time_limit_a_job_requeues_and_resumes_identically(refe
 
     members = _members(tmp_path / "study", TINY)
     run_dir = Path(members[0].directory)
-    job = study_slurm.StudyJob(members, time_limit_s=600)
+    job = StudyJob(members, time_limit_s=600)
     with ThreadPoolExecutor(1) as pool:
         attempt = pool.submit(job)
         wait_for(lambda: (run_dir / "checkpoints" / "resume.pt").exists() or attempt.done(), 120,
@@ -250,7 +251,7 @@ def test_a_job_that_wrote_no_checkpoint_in_most_of_its_time_is_not_requeued(tmp_
     from concurrent.futures import ThreadPoolExecutor
 
     members = _members(tmp_path / "study", TINY)
-    job = study_slurm.StudyJob(members, time_limit_s=2)
+    job = StudyJob(members, time_limit_s=2)
     with ThreadPoolExecutor(1) as pool:
         attempt = pool.submit(job)
         log = Path(members[0].log)

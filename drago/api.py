@@ -16,10 +16,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import drago.study as study  # studies: plan_study, run_study, describe_plan, ...
-import drago.study.slurm.monitoring  # noqa: F401 - the SLURM backend of drago study, as study.slurm
-import drago.study.slurm.options  # noqa: F401
-import drago.study.slurm.submission  # noqa: F401
 import drago.agent.factory  # noqa: F401 - registers the built-in agent kinds
 from drago.agent.protocol import (AgentCapabilities, AgentKind, ContinualAgent, agent_kinds, get_agent_kind,
                                   register_agent_kind)
@@ -59,6 +55,7 @@ from drago.eval.heldout import format_table as format_retention_table
 from drago.eval.heldout import heldout_checkpoints as retention_checkpoints
 from drago.eval.predictor import WorldModelPredictor, load_world_model
 from drago.report import ReportError, build_report
+from drago.study.command import SLURM_OPTIONS, StudyInterrupted, StudyOutcome, study_command
 from drago.training.checkpoint import CheckpointError, NonFiniteCheckpoint
 from drago.training.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
 from drago.training.records import RECORD_SUFFIX, RecordError, read_record
@@ -80,8 +77,8 @@ __all__ = [
     "available_domains", "available_methods", "available_presets", "build_report", "coverage", "default_run_dir",
     "describe_settings", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
     "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",
-    "resolve_speed", "run_paper_cases", "run_transfer", "speed_summary", "study", "task_descriptions",
-    "train",
+    "resolve_speed", "run_paper_cases", "run_transfer", "speed_summary", "task_descriptions", "train",
+    "SLURM_OPTIONS", "StudyInterrupted", "StudyOutcome", "study_command",
 ]
 
 

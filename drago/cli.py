@@ -490,27 +490,13 @@ def _add_study_parser(sub) -> None:
                             "(repeatable)")
 
 
-_SLURM_ONLY = (("--partition", "partition"), ("--account", "account"), ("--qos", "qos"), ("--time", "time"),
-               ("--cpus", "cpus"), ("--gpus", "gpus"), ("--jobs-per-gpu", "jobs_per_gpu"), ("--mem", "mem"),
-               ("--sbatch", "sbatch"))
-
-
 def _cmd_study(args: argparse.Namespace) -> int:
-    from drago.api import study
-
-    slurm_options, submission_, monitoring = study.slurm.options, study.slurm.submission, study.slurm.monitoring
-
-    DEFAULT_EPISODES, DEFAULT_METHODS = study.plan.DEFAULT_EPISODES, study.plan.DEFAULT_METHODS
-    DEFAULT_PRESET, DEFAULT_SEEDS = study.plan.DEFAULT_PRESET, study.plan.DEFAULT_SEEDS
-    default_study_dir, describe_plan = study.plan.default_study_dir, study.plan.describe_plan
-    parse_seeds, parse_cases, plan_study = study.plan.parse_seeds, study.plan.parse_cases, study.plan.plan_study
-    run_study, write_report = study.local.run_study, study.report.write_report
+    from drago.api import SLURM_OPTIONS, study_command
 
     overrides, preset = list(args.overrides), args.preset
     if preset is not None and "=" in preset:  # `drago study key=value`: no preset named
         overrides.insert(0, preset)
         preset = None
-    preset = preset or DEFAULT_PRESET
     # --methods/--seeds take every following word; key=value ones are overrides.
     methods = [m for m in args.methods or () if "=" not in m]
     seeds = [s for s in args.seeds or () if "=" not in s]
@@ -523,71 +509,17 @@ def _cmd_study(args: argparse.Namespace) -> int:
                                    ("--report-only", args.report_only)) if on]
     if len(modes) > 1:
         raise UsageError(f"{modes[0]} and {modes[1]} do not go together")
-    slurm = args.backend == "slurm"
-    out, jobs, cores, options = args.out, (1 if args.jobs is None else args.jobs), None, None
-    if slurm:
-        options = slurm_options.make_options(partition=args.partition, account=args.account, qos=args.qos,
-                                           time=args.time, cpus=args.cpus, gpus=args.gpus, mem=args.mem,
-                                           sbatch=args.sbatch, jobs=args.jobs, jobs_per_gpu=args.jobs_per_gpu)
-        if not (args.status or args.report_only):
-            slurm_options.require_submitit()
-        # The jobs run elsewhere: every path they are given is absolute.
-        out = (out or default_study_dir(preset)).absolute()
-        overrides = slurm_options.job_overrides(options, overrides)
-        jobs, cores = options.runs_per_job, max(options.cpus, options.runs_per_job)  # threads = CPUs / runs, >= 1
-    else:
-        given = [flag for flag, name in _SLURM_ONLY if getattr(args, name) not in (None, [])]
-        if given:
-            raise UsageError(f"{given[0]} is a SLURM option: add --backend slurm")
-    plan = plan_study(preset, methods or DEFAULT_METHODS, parse_seeds(seeds) if seeds else DEFAULT_SEEDS, out=out,
-                      overrides=overrides, jobs=jobs, transfers=not args.no_transfer,
-                      transfer_episodes=DEFAULT_EPISODES if args.transfer_episodes is None else args.transfer_episodes,
-                      transfer_eval_every=args.transfer_eval_every, cores=cores, check_settings=not args.status,
-                      transfer_reward=args.transfer_reward, transfer_few_shot_episodes=args.transfer_few_shot_episodes,
-                      cases=parse_cases(args.cases) if args.cases else None,
-                      records=None if args.records is None else (args.records.absolute() if slurm else args.records))
-    echo = lambda line: print(line, flush=True)  # noqa: E731
-    if args.status:
-        for line in monitoring.status_lines(plan):
-            echo(line)
-        return 0
-    if args.report_only:
-        _, error = write_report(plan, echo)
-        if error:
-            print(f"drago: no report: {error}", file=sys.stderr)
-            return 1
-        return 0
-    resources = submission_.describe_resources(options, plan) if slurm else None
-    for line in describe_plan(plan, verbose=args.dry_run, resources=resources):
-        echo(line)
-    if args.dry_run:
-        if slurm:
-            for line in submission_.describe_submission(plan, options):
-                echo(line)
-        return 0
-    if slurm:
-        with _on_interrupt("run the same `drago study` command again: it submits what is missing, never a "
-                           "job SLURM still has"):
-            submission = submission_.submit_study(plan, options, echo=echo)
-        if submission.report_error:
-            print(f"drago: no report: {submission.report_error}", file=sys.stderr)
-            return 1
-        if not args.wait:
-            return 0
-        with _on_interrupt("the jobs carry on in SLURM; the same command with --status shows them"):
-            result = monitoring.wait_study(submission, echo=echo)
-    else:
-        active = monitoring.active_job_ids(plan.out)
-        if active:
-            raise UsageError(f"SLURM jobs of this study are queued or running in {plan.out} (jobs "
-                             f"{', '.join(active)}); follow them with --backend slurm --status, or scancel them first")
-        with _on_interrupt("run the same `drago study` command again to continue"):
-            result = run_study(plan, echo=echo)
-    if not result.ok:
-        print(f"drago: {result.summary_line()}", file=sys.stderr)
-        return 1
-    print(result.summary_line())
-    return 0
+    outcome = study_command(
+        preset, methods or None, seeds or None, out=args.out, overrides=overrides, jobs=args.jobs,
+        transfers=not args.no_transfer, transfer_episodes=args.transfer_episodes,
+        transfer_eval_every=args.transfer_eval_every, transfer_few_shot_episodes=args.transfer_few_shot_episodes,
+        transfer_reward=args.transfer_reward, cases=args.cases, records=args.records,
+        mode=modes[0][2:] if modes else "run", backend=args.backend, wait=args.wait,
+        slurm={name: getattr(args, name) for name in SLURM_OPTIONS}, echo=lambda line: print(line, flush=True))
+    if outcome.message is not None:
+        print(outcome.message if outcome.ok else f"drago: {outcome.message}",
+              file=sys.stdout if outcome.ok else sys.stderr)
+    return 0 if outcome.ok else 1
 
 
 COMMANDS["study"] = _cmd_study
@@ -625,7 +557,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    from drago.api import CheckpointError, ConfigError, NonFiniteCheckpoint, RunDirError, TrainingDiverged
+    from drago.api import (CheckpointError, ConfigError, NonFiniteCheckpoint, RunDirError, StudyInterrupted,
+                           TrainingDiverged)
 
     try:
         args, extra = _parser().parse_known_args(argv)
@@ -641,7 +574,7 @@ def _main(argv: list[str] | None) -> int:
     except (TrainingDiverged, NonFiniteCheckpoint) as err:
         print(f"drago: error: {err}", file=sys.stderr)
         return 1
-    except _Interrupted as interrupted:
+    except (_Interrupted, StudyInterrupted) as interrupted:  # a command that says how it is continued
         print(f"drago: interrupted; {interrupted}", file=sys.stderr)
         return 130
     except BrokenPipeError:

@@ -32,6 +32,11 @@ LAYER_OF = {
     "drago.__main__": "cli",
 }
 
+#: Inside the study layer, lowest first: the plan knows no backend, and the local backend nothing of SLURM. A
+#: module's part is the longest prefix listed (``drago.study`` itself, the package's re-exports, is the top).
+STUDY_PARTS = ("drago.study.plan", "drago.study.report", "drago.study.local", "drago.study.slurm",
+               "drago.study.command", "drago.study")
+
 
 def module_name(path: Path) -> str:
     parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
@@ -91,6 +96,18 @@ def test_no_module_imports_from_a_layer_above_its_own():
                     for module, targets in import_graph().items() for target in targets
                     if rank[layer(target)] > rank[layer(module)])
     assert not upward, "imports against the layer order:\n" + "\n".join(upward)
+
+
+def test_inside_the_study_no_module_imports_from_a_part_above_its_own():
+    def part(module: str) -> int:
+        found = [p for p in STUDY_PARTS if module == p or module.startswith(p + ".")]
+        assert found, f"{module} has no part of the study: add it to STUDY_PARTS in tests/test_layers.py"
+        return STUDY_PARTS.index(max(found, key=len))
+
+    upward = sorted(f"{module} imports {target}" for module, targets in import_graph().items()
+                    if layer(module) == "study" for target in targets
+                    if layer(target) == "study" and part(target) > part(module))
+    assert not upward, "imports against the study's order:\n" + "\n".join(upward)
 
 
 def test_no_import_circles():

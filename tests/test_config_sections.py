@@ -10,7 +10,7 @@ import pytest
 
 import drago
 from drago.config import RENAMED, ConfigError, inapplicable_settings, load_config
-from drago.study import DONE, START, StudyError, plan_study
+from drago.study.plan import DONE, START, StudyError, plan_study
 from drago.training.records import materialize, protocol_digest, read_record, run_protocol
 from drago.training.rundir import config_diffs, read_run_config
 

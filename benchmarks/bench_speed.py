@@ -201,8 +201,9 @@ def components(method: Drago, task: TaskState, cfg) -> dict:
     step = task.step
     obs = np.asarray(task.env.reset()[0])
     rng = np.random.default_rng(1)
-    bonus = method.counts.bonus if method.counts is not None else None
-    reviewer = method.reviewer
+    parts = method.task_parts(task)
+    bonus = parts.counts.bonus if parts.counts is not None else None
+    reviewer = parts.reviewer
     B = cfg.agent.batch_size
     freq = cfg.method.rehearsal.freq
 
@@ -218,7 +219,7 @@ def components(method: Drago, task: TaskState, cfg) -> dict:
         task.world_optimizer.step()
 
     def vae_step():
-        method._vae_step(task.buffer.sample(B, rng).concat(method.reviewer_buffer.sample(B, rng)))
+        method._vae_step(parts, task.buffer.sample(B, rng).concat(parts.reviewer_buffer.sample(B, rng)))
 
     u0 = step - step % (freq * cfg.agent.tdmpc.update_freq)  # a step with rehearsal and target EMA
     return {

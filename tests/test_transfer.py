@@ -168,7 +168,7 @@ class StartProbe(Drago):
                 "reward": task.learner.heads.predict_reward(obs, actions).clone(),
                 "vae": {k: v.clone() for k, v in self.vae.state_dict().items()},
                 "threshold": self.threshold, "tasks_seen": self.tasks_seen,
-                "reviewer": self.reviewer is not None, "dense": task.env.unwrapped.dense,
+                "reviewer": self.task_parts(task).reviewer is not None, "dense": task.env.unwrapped.dense,
                 "buffer": len(task.buffer), "step": task.step, "obs": obs, "actions": actions,
             }
 

@@ -112,7 +112,7 @@ class TaskState:
     step: int = 0  # task-local agent steps, learner and reviewer together
     learner_steps: int = 0
     episodes: int = 0
-    extras: dict[str, Any] = field(default_factory=dict)  # a method's per-task objects
+    extras: dict[str, Any] = field(default_factory=dict)  # a method's per-task objects (DRAGO's reviewer, ...)
     schedule_clock: str = "task"  # agent.schedule_clock
 
     @property

@@ -17,13 +17,15 @@ The ablations of the paper are subclasses that switch one part off.
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from typing import Any
 
 import torch
+from torch import nn
 
 from drago.agent.buffer import Batch, EpisodeReplay
 from drago.agent.factory import build_agent
-from drago.agent.protocol import get_agent_kind
+from drago.agent.protocol import ContinualAgent, get_agent_kind
 from drago.continual.base import ContinualMethod, TaskState, task_replay
 from drago.envs.episodes import run_episode
 from drago.continual.generative import (
@@ -36,6 +38,23 @@ from drago.continual.generative import (
 )
 
 VAE_GRAD_CLIP = 10.0
+
+
+@dataclass
+class DragoTaskParts:
+    """What DRAGO builds for one task and drops at its end (paper §3.1-3.2), kept in the task's state
+    (:meth:`Drago.task_parts`). The VAE and the threshold θ in force belong to the method: they cross tasks."""
+
+    vae_optimizer: torch.optim.Optimizer
+    #: The running average of the prediction score over this task: the next task's θ (paper §3.2).
+    threshold_new: torch.Tensor | float
+    #: Frozen copies of the previous task's world model T_old and generator G_old (none on the first task).
+    old_world_model: nn.Module | None = None
+    old_vae: VAE | None = None
+    #: The reviewer, its episodes and its state counts, from the second task on (none in the ablations without it).
+    reviewer: ContinualAgent | None = None
+    reviewer_buffer: EpisodeReplay | None = None
+    counts: GridCounts | ContinuousCounts | None = None
 
 
 class Drago(ContinualMethod):
@@ -57,15 +76,17 @@ class Drago(ContinualMethod):
         m = cfg.method
         self.vae = VAE(spec.obs_dim + spec.action_dim, m.vae.hidden_dim, m.vae.latent_dim).to(device)
         self.threshold = m.reviewer.initial_threshold  # theta: fixed during a task, the previous task's EMA
-        self.threshold_new: torch.Tensor | float = self.threshold
+        self.next_threshold = self.threshold  # the finished task's EMA, once it has ended
         self.tasks_seen = 0
-        self.old_world_model = None
-        self.old_vae = None
+
+    @staticmethod
+    def task_parts(task: TaskState) -> DragoTaskParts:
+        """The reviewer, frozen old models and optimizer of ``task`` (built by :meth:`begin_task`)."""
+        return task.extras["drago"]
 
     # ---- what crosses task boundaries ----------------------------------------------------------
     def carry_state(self) -> dict[str, Any]:
-        return {"vae": self.vae.state_dict(), "threshold": float(self.threshold_new),
-                "tasks_seen": self.tasks_seen + 1}
+        return {"vae": self.vae.state_dict(), "threshold": self.next_threshold, "tasks_seen": self.tasks_seen + 1}
 
     def load_carry_state(self, state: dict[str, Any]) -> None:
         self.vae.load_state_dict(state["vae"])
@@ -78,60 +99,62 @@ class Drago(ContinualMethod):
 
     def begin_task(self, task: TaskState) -> None:
         cfg = self.cfg
-        self.threshold_new = self.threshold
-        self.vae_optimizer = torch.optim.Adam(self.vae.parameters(), lr=cfg.agent.lr)
         previous = self.tasks_seen > 0
-        self.world_model = task.world_model
-        # One frozen old model for all previous tasks (paper §3.1), never one per task.
-        self.old_world_model = copy.deepcopy(task.world_model).requires_grad_(False) if previous else None
-        self.old_vae = copy.deepcopy(self.vae).requires_grad_(False) if previous and self.use_rehearsal else None
-        self.reviewer = None
+        parts = task.extras["drago"] = DragoTaskParts(
+            vae_optimizer=torch.optim.Adam(self.vae.parameters(), lr=cfg.agent.lr), threshold_new=self.threshold,
+            # One frozen old model for all previous tasks (paper §3.1), never one per task.
+            old_world_model=copy.deepcopy(task.world_model).requires_grad_(False) if previous else None,
+            old_vae=copy.deepcopy(self.vae).requires_grad_(False) if previous and self.use_rehearsal else None)
         if previous and self.use_reviewer and not self.single_agent:
-            self.reviewer = build_agent(cfg, self.spec, task.world_model, task.world_optimizer, task=task.name,
-                                        reviewer=True)
-            self.reviewer_buffer = task_replay(cfg, self.spec, task.budget.max_reviewer_steps, self.device)
-            self.counts = None
+            parts.reviewer = build_agent(cfg, self.spec, task.world_model, task.world_optimizer, task=task.name,
+                                         reviewer=True)
+            parts.reviewer_buffer = task_replay(cfg, self.spec, task.budget.max_reviewer_steps, self.device)
             if cfg.method.reviewer.pseudo_counts:
-                self.counts = (GridCounts(self.device) if self.spec.discrete
-                               else ContinuousCounts(self.spec.obs_dim, self.device))
+                parts.counts = (GridCounts(self.device) if self.spec.discrete
+                                else ContinuousCounts(self.spec.obs_dim, self.device))
+
+    def end_task(self, task: TaskState) -> None:
+        self.next_threshold = float(self.task_parts(task).threshold_new)
 
     # ---- collection ------------------------------------------------------------------------------
     def collect(self, task: TaskState) -> dict[str, float]:
         """One reviewer episode: plan for the intrinsic reward, ignore the env reward (paper §3.3, Algorithm 1)."""
-        if self.reviewer is None or not task.budget.reviewer_may_collect(task):
+        parts = self.task_parts(task)
+        if parts.reviewer is None or not task.budget.reviewer_may_collect(task):
             return {}
-        cfg, reviewer, L = self.cfg, self.reviewer, self.cfg.env.episode_length
+        cfg, reviewer, counts, L = self.cfg, parts.reviewer, parts.counts, self.cfg.env.episode_length
         step = task.step
-        explore_randomly = step < cfg.agent.seed_steps or len(self.reviewer_buffer) < cfg.agent.batch_size
+        explore_randomly = step < cfg.agent.seed_steps or len(parts.reviewer_buffer) < cfg.agent.batch_size
         schedule = task.schedule_step
-        bonus = self.counts.bonus if self.counts is not None else None
+        bonus = counts.bonus if counts is not None else None
 
         def choose(obs, t):
-            if self.counts is not None:  # each state is counted before the reviewer plans from it
-                self.counts.update(torch.as_tensor(obs, device=self.device))
+            if counts is not None:  # each state is counted before the reviewer plans from it
+                counts.update(torch.as_tensor(obs, device=self.device))
             if explore_randomly:
                 return reviewer.random_action(task.rng)
             return reviewer.act(obs, schedule, eval_mode=False, first_step=t == 0, bonus=bonus)
 
         episode = run_episode(task.env, L, choose)  # a plain reset: the reviewer has no pre-rollout
-        if self.counts is not None:
-            self.counts.update(torch.as_tensor(episode.obs[-1], device=self.device))
+        if counts is not None:
+            counts.update(torch.as_tensor(episode.obs[-1], device=self.device))
         obs_t = torch.as_tensor(episode.obs, device=self.device)
         act_t = torch.as_tensor(episode.actions, device=self.device)
         # The dynamics do not change during collection, so one batched call labels the whole episode
         # exactly as per-step calls would (the official code calls the model once per step).
-        r = self._intrinsic(obs_t[:-1], act_t, obs_t[1:])
-        self.reviewer_buffer.add_episode(obs_t, act_t, r.reward)
+        r = self._intrinsic(task, obs_t[:-1], act_t, obs_t[1:])
+        parts.reviewer_buffer.add_episode(obs_t, act_t, r.reward)
         task.step += L
         return {"reviewer_episode_reward": float(r.reward.sum()), "old_model_episode_reward": float(r.old_reward.sum()),
                 "learner_model_episode_cost": float(r.cost.sum())}
 
     def collected_buffers(self, task: TaskState) -> dict[str, EpisodeReplay]:
-        return {"reviewer": self.reviewer_buffer} if self.reviewer is not None else {}
+        parts = self.task_parts(task)
+        return {"reviewer": parts.reviewer_buffer} if parts.reviewer is not None else {}
 
-    def _intrinsic(self, obs, actions, next_obs):
+    def _intrinsic(self, task: TaskState, obs, actions, next_obs):
         m = self.cfg.method
-        return intrinsic_reward(self.old_world_model, self.world_model, obs, actions, next_obs,
+        return intrinsic_reward(self.task_parts(task).old_world_model, task.world_model, obs, actions, next_obs,
                                 self.threshold - m.reviewer.threshold_offset, m.reviewer.cost_coef,
                                 m.reviewer.intrinsic_reward)
 
@@ -139,43 +162,45 @@ class Drago(ContinualMethod):
     def gradient_step(self, task: TaskState, u: int) -> dict[str, torch.Tensor]:
         cfg, m = self.cfg, self.cfg.method
         B = cfg.agent.batch_size
-        rehearse = self.old_vae is not None and u % m.rehearsal.freq == 0
+        parts = self.task_parts(task)
+        rehearse = parts.old_vae is not None and u % m.rehearsal.freq == 0
         joint = ((lambda: m.rehearsal.weight * self._rehearsal(task)) if rehearse and m.rehearsal.mode == "joint"
                  else None)
         metrics: dict[str, torch.Tensor] = {}
 
         learner_batch = task.buffer.sample(B, task.rng)
-        if self.reviewer is None:
+        if parts.reviewer is None:
             # Task 1, or no reviewer: the learner's update trains the world model (paper §3.2).
-            if self.single_agent and self.old_world_model is not None:
-                learner_batch = learner_batch.with_rewards(learner_batch.rewards + self._relabel(learner_batch))
+            if self.single_agent and parts.old_world_model is not None:
+                learner_batch = learner_batch.with_rewards(learner_batch.rewards + self._relabel(task, learner_batch))
             out = task.learner.update(learner_batch, u, train_world_model=True, world_model_loss=joint)
             task.buffer.update_priorities(learner_batch.indices, out.pop("priority"))
-            self._track_threshold(out["mean_prediction_score"])
+            self._track_threshold(parts, out["mean_prediction_score"])
             metrics.update({f"learner_{k}": v for k, v in out.items()})
             vae_rows = learner_batch
         else:
-            reviewer_batch = self.reviewer_buffer.sample(B, task.rng)
+            reviewer = parts.reviewer
+            reviewer_batch = parts.reviewer_buffer.sample(B, task.rng)
             # Reviewer rows first: the policy loss and priorities use only them (paper §3.2).
-            combined = reviewer_batch.concat(learner_batch.with_rewards(self._relabel(learner_batch)))
+            combined = reviewer_batch.concat(learner_batch.with_rewards(self._relabel(task, learner_batch)))
             # One world-model rollout, with its graph, over all 2B rows feeds both updates: the learner's
             # update (first, as in the official order) does not change the world model, so its rows' latents
             # are exactly those its own no-grad rollout would give. The reviewer's backward then trains it.
-            shared = self.reviewer.capabilities.shared_rollout  # an agent without latents has none to share
-            latents = self.reviewer.rollout(combined.obs, combined.actions) if shared else None
+            shared = reviewer.capabilities.shared_rollout  # an agent without latents has none to share
+            latents = reviewer.rollout(combined.obs, combined.actions) if shared else None
             out = task.learner.update(learner_batch, u, train_world_model=False,
                                       **({"latents": latents[:, B:].detach()} if shared else {}))
             task.buffer.update_priorities(learner_batch.indices, out.pop("priority"))
             metrics.update({f"learner_{k}": v for k, v in out.items()})
-            out = self.reviewer.update(combined, u, train_world_model=True, policy_rows=B, world_model_loss=joint,
-                                       **({"latents": latents} if shared else {}))
-            self.reviewer_buffer.update_priorities(reviewer_batch.indices, out.pop("priority"))
-            self._track_threshold(out["mean_prediction_score"])
+            out = reviewer.update(combined, u, train_world_model=True, policy_rows=B, world_model_loss=joint,
+                                  **({"latents": latents} if shared else {}))
+            parts.reviewer_buffer.update_priorities(reviewer_batch.indices, out.pop("priority"))
+            self._track_threshold(parts, out["mean_prediction_score"])
             metrics.update({f"reviewer_{k}": v for k, v in out.items()})
             vae_rows = combined if m.vae.data == "combined" else learner_batch
 
         if self.trains_vae:
-            metrics.update(self._vae_step(vae_rows))
+            metrics.update(self._vae_step(parts, vae_rows))
         if rehearse and m.rehearsal.mode == "separate":
             # Its own optimizer step of weight 1 and no grad clipping, as in the official code.
             loss = self._rehearsal(task)
@@ -183,62 +208,65 @@ class Drago(ContinualMethod):
             loss.backward()
             task.world_optimizer.step()
             metrics["rehearsal_loss"] = loss.detach()
-        metrics["threshold"] = torch.as_tensor(self.threshold_new)
+        metrics["threshold"] = torch.as_tensor(parts.threshold_new)
         return metrics
 
-    def _relabel(self, batch: Batch) -> torch.Tensor:
+    def _relabel(self, task: TaskState, batch: Batch) -> torch.Tensor:
         """Intrinsic reward of every step of learner sequences, with the dynamics of this moment."""
         states = torch.cat((batch.obs[None], batch.next_obs[:-1]))  # s_0 .. s_H
-        return self._intrinsic(states, batch.actions, batch.next_obs).reward
+        return self._intrinsic(task, states, batch.actions, batch.next_obs).reward
 
     def _rehearsal(self, task: TaskState) -> torch.Tensor:
-        sample = self.old_vae.sample(self.cfg.method.rehearsal.batch)
+        parts = self.task_parts(task)
+        sample = parts.old_vae.sample(self.cfg.method.rehearsal.batch)
         states, actions = sample.split((self.spec.obs_dim, self.spec.action_dim), dim=-1)
         # Generated pairs are used raw (no one-hot projection), as in the official code (docs: Design, paper and code).
         # The dynamics run in the agent's precision; the small VAE and the intrinsic reward stay float32.
         with task.learner.autocast():
-            return rehearsal_loss(task.world_model, self.old_world_model, states, actions,
+            return rehearsal_loss(task.world_model, parts.old_world_model, states, actions,
                                   self.cfg.method.rehearsal.target)
 
-    def _vae_step(self, rows: Batch) -> dict[str, torch.Tensor]:
+    def _vae_step(self, parts: DragoTaskParts, rows: Batch) -> dict[str, torch.Tensor]:
         m = self.cfg.method
         x = torch.cat((rows.obs, rows.actions[0]), dim=-1)
-        if self.old_vae is not None and self.continual_vae:
-            x = torch.cat((x, self.old_vae.sample(m.rehearsal.batch)))
+        if parts.old_vae is not None and self.continual_vae:
+            x = torch.cat((x, parts.old_vae.sample(m.rehearsal.batch)))
         reconstruction, mu, log_var = self.vae(x)
         total, recon, kl = vae_loss(reconstruction, x, mu, log_var, m.vae.recon_coef, m.vae.kl_coef)
-        self.vae_optimizer.zero_grad(set_to_none=True)
+        parts.vae_optimizer.zero_grad(set_to_none=True)
         total.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.vae.parameters(), VAE_GRAD_CLIP)
-        self.vae_optimizer.step()
+        parts.vae_optimizer.step()
         return {"vae_loss": total.detach(), "vae_recon_loss": recon.detach(), "vae_kl_loss": kl.detach(),
                 "vae_grad_norm": grad_norm.detach()}
 
-    def _track_threshold(self, score: torch.Tensor) -> None:
+    def _track_threshold(self, parts: DragoTaskParts, score: torch.Tensor) -> None:
         # Kept as a tensor so the hot loop never waits for the device.
         momentum = self.cfg.method.reviewer.threshold_momentum
-        self.threshold_new = momentum * torch.as_tensor(self.threshold_new, dtype=score.dtype) + (1 - momentum) * score
+        parts.threshold_new = momentum * torch.as_tensor(parts.threshold_new, dtype=score.dtype) + (1 - momentum) * score
 
     # ---- mid-task resume -------------------------------------------------------------------------
     def task_state_dict(self, task: TaskState) -> dict[str, Any]:
-        state: dict[str, Any] = {"vae": self.vae.state_dict(), "vae_optimizer": self.vae_optimizer.state_dict(),
-                                 "threshold_new": float(self.threshold_new)}
-        if self.reviewer is not None:
-            state["reviewer"] = self.reviewer.state_dict()
-            state["reviewer_buffer"] = self.reviewer_buffer.state_dict()
-            if self.counts is not None:
-                state["counts"] = self.counts.state_dict()
+        parts = self.task_parts(task)
+        state: dict[str, Any] = {"vae": self.vae.state_dict(), "vae_optimizer": parts.vae_optimizer.state_dict(),
+                                 "threshold_new": float(parts.threshold_new)}
+        if parts.reviewer is not None:
+            state["reviewer"] = parts.reviewer.state_dict()
+            state["reviewer_buffer"] = parts.reviewer_buffer.state_dict()
+            if parts.counts is not None:
+                state["counts"] = parts.counts.state_dict()
         return state
 
     def load_task_state_dict(self, task: TaskState, state: dict[str, Any]) -> None:
+        parts = self.task_parts(task)
         self.vae.load_state_dict(state["vae"])
-        self.vae_optimizer.load_state_dict(state["vae_optimizer"])
-        self.threshold_new = float(state["threshold_new"])
-        if self.reviewer is not None:
-            self.reviewer.load_state_dict(state["reviewer"])
-            self.reviewer_buffer.load_state_dict(state["reviewer_buffer"])
-            if self.counts is not None:
-                self.counts.load_state_dict(state["counts"])
+        parts.vae_optimizer.load_state_dict(state["vae_optimizer"])
+        parts.threshold_new = float(state["threshold_new"])
+        if parts.reviewer is not None:
+            parts.reviewer.load_state_dict(state["reviewer"])
+            parts.reviewer_buffer.load_state_dict(state["reviewer_buffer"])
+            if parts.counts is not None:
+                parts.counts.load_state_dict(state["counts"])
 
 
 class DragoNoRehearsal(Drago):

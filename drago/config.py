@@ -618,9 +618,9 @@ def migrate_flat(settings: dict[str, Any]) -> dict[str, Any]:
 
 
 # ---- which settings a run reads ---------------------------------------------------------------------
-#: The method sections (``vae``, ``ewc``, ...) a method reads, by method name; None for a method not known
-#: here. The continual layer installs it (``ContinualMethod.reads``).
-method_reads: Callable[[str], tuple[str, ...] | None] = lambda name: None
+#: The method sections (``vae``, ``ewc``, ...) each registered method reads, by method name. The continual
+#: layer, which the config sits below, installs it from its registry (``ContinualMethod.reads``).
+methods_reads: Callable[[], dict[str, tuple[str, ...]]] = dict
 
 
 def applies(key: str, kind: str, method: str) -> bool:
@@ -633,7 +633,7 @@ def applies(key: str, kind: str, method: str) -> bool:
     if parts[0] == "agent":
         return parts[1] == kind
     if parts[0] == "method":
-        reads = method_reads(method)
+        reads = methods_reads().get(method)
         return reads is None or parts[1] in reads
     return True
 
@@ -649,12 +649,8 @@ def _readers(key: str) -> str:
     if parts[0] == "agent":
         return f"agent.kind={parts[1]}"
     load_method_plugins()
-    from_methods = [name for name in METHOD_NAMES() if parts[1] in (method_reads(name) or ())]
+    from_methods = [name for name, reads in methods_reads().items() if parts[1] in reads]
     return ("method " if len(from_methods) == 1 else "methods ") + ", ".join(from_methods)
-
-
-#: The names of the registered methods (installed by the continual layer, for messages).
-METHOD_NAMES: Callable[[], list[str]] = lambda: []
 
 
 def refuse_inapplicable(cfg: Config, keys: list[str]) -> None:

@@ -18,8 +18,7 @@ for _builtin in (Continual, Scratch, Drago, DragoNoRehearsal, DragoNoReviewer, D
     register_method(_builtin.name, _builtin)
 # A method.NAME override may be a plug-in method's own setting: the config looks after the plug-ins load.
 _config.load_method_plugins = _load_plugins
-_config.method_reads = lambda name: METHODS[name].reads if name in METHODS else None
-_config.METHOD_NAMES = lambda: list(METHODS)
+_config.methods_reads = lambda: {name: method.reads for name, method in METHODS.items()}
 
 
 def available_methods() -> list[str]:

@@ -15,10 +15,6 @@ import textwrap
 import tokenize
 from functools import cache
 
-# Source comments cite sections of an internal specification that users do not have; the page drops
-# those citations. README section names that moved into this site become links.
-_SPEC_CITATION = re.compile(r"\s*\((?:see )?spec §[^)]*\)|\s*\(§\d[^)]*\)")
-_MOVED = {'README "Speed and precision"': "[Speed and precision](../speed.md)"}
 # A comment block of this form above a field starts a group of settings: "# -- EWC --", "# Planning."
 _GROUP = re.compile(r"^--\s*(.+?)\s*--$")
 
@@ -31,10 +27,7 @@ class FieldDoc:
 
 
 def clean(text: str) -> str:
-    """A comment as a description: citations users cannot follow dropped, whitespace collapsed."""
-    text = _SPEC_CITATION.sub("", text)
-    for old, new in _MOVED.items():
-        text = text.replace(old, new)
+    """A comment as a description: its whitespace collapsed."""
     return re.sub(r"\s+", " ", text).strip()
 
 

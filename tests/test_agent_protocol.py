@@ -6,6 +6,7 @@ methods that ask for nothing it lacks, and is refused in one line by a method th
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import json
 from collections.abc import Iterator
@@ -152,3 +153,36 @@ def test_a_bad_kind_is_refused_at_registration():
         drago.register_agent_kind("random-shooter")
     with pytest.raises(ConfigError, match="already registered"):
         drago.register_agent_kind(AgentKind(**{**RANDOM_SHOOTER.__dict__, "name": "tdmpc"}))
+
+
+PACKAGE = Path(drago.__file__).resolve().parent
+
+
+def kind_name_comparisons(source: str, kinds: set[str]) -> list[int]:
+    """Lines of ``source`` that compare a value with an agent kind's name (``kind == "pets"``, ``in ("tdmpc",)``).
+
+    Data keyed by a kind (the paper's numbers for its TD-MPC agent) is not a comparison: a plug-in kind simply
+    has no entry there."""
+    def names(node):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            yield node.value
+        elif isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            for element in node.elts:
+                yield from names(element)
+
+    return [node.lineno for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Compare)
+            and any(name in kinds for operand in (node.left, *node.comparators) for name in names(operand))]
+
+
+def test_no_agent_kind_is_compared_outside_the_agent_layer():
+    kinds = set(agent_kinds())
+    found = [f"{path.relative_to(PACKAGE.parent)}:{line}" for path in sorted(PACKAGE.rglob("*.py"))
+             if path.relative_to(PACKAGE).parts[0] != "agent"
+             for line in kind_name_comparisons(path.read_text(), kinds)]
+    assert not found, "ask the agent's capabilities instead of naming its kind: " + ", ".join(found)
+
+
+def test_the_kind_scan_sees_a_comparison():
+    assert kind_name_comparisons('if cfg.agent.kind != "tdmpc":\n    pass\nx = kind in ("pets", "other")\n',
+                                 {"tdmpc", "pets"}) == [1, 3]
+    assert kind_name_comparisons('PAPER = {("tdmpc", "drago"): 1}\n', {"tdmpc", "pets"}) == []

@@ -62,12 +62,15 @@ PAPER_FEW_SHOT: dict[tuple[str, str, int], dict[str, Cell]] = {
     ("pets", "room3to4 (dense)", 4): {"drago": (234.65, 41.71), "continual": (147.80, 105.84)},
 }
 
-#: The appendix's final return of each training task ("1M steps", one value per cell): method -> task -> return.
-PAPER_TRAINING_RETURNS: dict[str, dict[str, float]] = {
-    "drago": {"cheetah-run": 652.53, "cheetah-jump": 587.24, "cheetah-run-backwards": 624.09, "walker-run": 708.74,
-              "walker-walk": 954.56, "walker-walk-backwards": 953.8, "walker-stand": 972.46},
-    "continual": {"cheetah-run": 675.31, "cheetah-jump": 646.30, "cheetah-run-backwards": 580.59,
-                  "walker-run": 693.61, "walker-walk": 959.31, "walker-walk-backwards": 956.42, "walker-stand": 982.69},
+#: The appendix's final return of each training task ("1M steps", one value per cell), for its TD-MPC agent:
+#: ``(agent kind, method) -> {task: return}``.
+PAPER_TRAINING_RETURNS: dict[tuple[str, str], dict[str, float]] = {
+    ("tdmpc", "drago"): {"cheetah-run": 652.53, "cheetah-jump": 587.24, "cheetah-run-backwards": 624.09,
+                         "walker-run": 708.74, "walker-walk": 954.56, "walker-walk-backwards": 953.8,
+                         "walker-stand": 972.46},
+    ("tdmpc", "continual"): {"cheetah-run": 675.31, "cheetah-jump": 646.30, "cheetah-run-backwards": 580.59,
+                             "walker-run": 693.61, "walker-walk": 959.31, "walker-walk-backwards": 956.42,
+                             "walker-stand": 982.69},
 }
 
 
@@ -149,9 +152,9 @@ def paper_training_table(groups: dict[str, list[ReportedRun]], tasks: list[str])
     """The appendix's final training returns beside the runs' (TD-MPC runs of the methods it reports)."""
     rows = []
     for label, runs in groups.items():
-        if not runs or runs[0].cfg.agent.kind != "tdmpc" or runs[0].method not in PAPER_TRAINING_RETURNS:
+        paper = PAPER_TRAINING_RETURNS.get((runs[0].cfg.agent.kind, runs[0].method)) if runs else None
+        if paper is None:
             continue
-        paper = PAPER_TRAINING_RETURNS[runs[0].method]
         for task in tasks:
             if task not in paper:
                 continue

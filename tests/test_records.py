@@ -290,3 +290,25 @@ def test_eval_tables_read_a_records_recorded_evaluation(recorded, capsys):
     assert f"read coverage.csv from the record {record}" in from_record
     assert cli.main(["eval", "heldout", str(record)]) == 2  # a grid unit records no held-out retention
     assert "holds no retention.csv" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="no `chromium` on PATH (scripts/setup.sh installs it)")
+def test_the_report_screenshots_show_the_records_sections(recorded, tmp_path):
+    """docs/make_report_screenshots.py: each chosen section of the records' report, drawn by a browser, cropped."""
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    _, records = recorded
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, str(root / "docs" / "make_report_screenshots.py"), "--records", str(records),
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    for name in ("report-records-top.png", "report-records-components.png"):
+        image = np.asarray(Image.open(tmp_path / name).convert("L"))
+        height, width = image.shape
+        assert 600 < width < 2000 and 200 < height < 6000, (name, image.shape)
+        assert (image < 128).mean() > 0.005  # text and figures drawn, not a blank page
+        assert (image[-10:] > 250).all()  # cropped below the last section, not cut through it

@@ -4,7 +4,7 @@ Builds the report from committed records (``drago report RECORDS``), keeps the c
 page (the page's own styles, tables and figures, nothing redrawn), renders each selection in headless
 Chromium and crops the blank margin below it:
 
-    .venv/bin/python docs/make_report_screenshots.py --records results/grid
+    .venv/bin/python docs/make_report_screenshots.py --records results/grid [--methods drago continual ...]
 
 writes ``docs/report-records-top.png`` (the report's top: its runs and final returns) and
 ``docs/report-records-components.png`` (which part forgot, task × stage; the swap test; what each method stores and
@@ -68,14 +68,20 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=Path, default=DOCS.parent / "results" / "grid",
                         help="folder of records (default results/grid)")
+    parser.add_argument("--methods", nargs="+", default=None,
+                        help="only these methods' records (RECORDS/METHOD), in this order (default: all)")
     parser.add_argument("--out", type=Path, default=DOCS, help="folder of the screenshots (default docs/)")
     args = parser.parse_args()
+    sources = [args.records] if args.methods is None else [args.records / method for method in args.methods]
+    missing = [str(source) for source in sources if not source.is_dir()]
+    if missing:
+        raise SystemExit(f"no records folder {', '.join(missing)}: check --records and --methods")
     browser = shutil.which("chromium") or shutil.which("chromium-browser")
     if browser is None:
         raise SystemExit("no chromium on the PATH: run scripts/setup.sh, or install Debian's chromium package")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        subprocess.run([sys.executable, "-m", "drago", "report", str(args.records), "--out", str(folder / "report")],
+        subprocess.run([sys.executable, "-m", "drago", "report", *map(str, sources), "--out", str(folder / "report")],
                        check=True, stdout=subprocess.DEVNULL)
         html = (folder / "report" / "report.html").read_text(encoding="utf-8")
         for name, (ids, with_title) in SHOTS.items():

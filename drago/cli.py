@@ -250,12 +250,14 @@ def _cmd_eval_components(args: argparse.Namespace) -> int:
     for run_dir in args.run_dirs:
         swaps, written = evaluate_components(run_dir)
         print(f"{run_dir}: return on an earlier task as a fraction of its DP optimum (swap test)")
-        print(f"  {'task':<8} {'after':>5} {'saved':>6} {'moved':>6} {'refit':>6} {'true reward':>11}")
+        print(f"  {'task':<8} {'after':>5} {'saved':>6} {'moved':>6} {'refit':>6} {'refit range':>11} "
+              f"{'true reward':>11}")
         for row in swaps:
             share = {key: (f"{float(row[key]) / row['optimum']:.2f}" if row[key] != "" else "–")
-                     for key in ("saved", "moved", "refit", "true_reward")}
+                     for key in ("saved", "moved", "refit", "refit_min", "refit_max", "true_reward")}
+            spread = f"{share['refit_min']}-{share['refit_max']}"
             print(f"  {row['task']:<8} {row['stage']:>5} {share['saved']:>6} {share['moved']:>6} {share['refit']:>6} "
-                  f"{share['true_reward']:>11}")
+                  f"{spread:>11} {share['true_reward']:>11}")
         for path in written:
             print(f"wrote {path}")
     return 0

@@ -9,9 +9,8 @@ import torch
 
 from drago.agent.networks import TaskHeads
 from drago.envs import task_optimum
-from drago.eval.components import (ComponentsError, component_errors, grid_probe, heads_return, optimal_q,
-                                   rank_correlation,
-                                   refit_heads)
+from drago.eval.components import (REFIT_DRAWS, ComponentsError, component_errors, grid_probe, heads_return,
+                                   optimal_q, rank_correlation, refit_heads)
 from drago.eval.costs import carried_bytes
 from drago.eval.zero_shot import true_dynamics
 from helpers import tdmpc_config
@@ -152,6 +151,11 @@ def test_eval_components_writes_its_files_and_the_report_shows_them(tmp_path, ca
         costs = list(csv.DictReader(handle))
     # replay is the one method that carries raw transitions of earlier tasks
     assert [r["raw_data"] for r in costs] == ["True", "True"] and int(costs[0]["bytes_raw_transitions"]) > 0
+    with (run / "swap.csv").open() as handle:
+        swaps = list(csv.DictReader(handle))
+    # room1 after stage 2: the refit column is the mean of REFIT_DRAWS refits, between the lowest and highest
+    assert len(swaps) == 1 and int(swaps[0]["refit_draws"]) == REFIT_DRAWS
+    assert float(swaps[0]["refit_min"]) <= float(swaps[0]["refit"]) <= float(swaps[0]["refit_max"])
     assert cli.main(["report", str(run), "--out", str(tmp_path / "report")]) == 0
     page = (tmp_path / "report" / "report.md").read_text()
     assert "## The swap test" in page and "## What each method stores and spends" in page

@@ -10,13 +10,15 @@ import pytest
 
 import drago
 from drago.config import RENAMED, ConfigError, inapplicable_settings, load_config
-from drago.study.plan import DONE, START, StudyError, plan_study
+from drago.eval import unit
+from drago.study.plan import DONE, START, StudyError, plan_study, record_verdict
 from drago.training.records import materialize, protocol_digest, read_record, run_protocol
 from drago.training.rundir import config_diffs, read_run_config
 
 ROOT = Path(__file__).resolve().parents[1]
-#: A unit of the grid study recorded before the sections existed (record format version 1, flat names).
-FLAT_RECORD = ROOT / "results" / "grid" / "drago-no-reviewer" / "seed1.json.gz"
+#: A unit of the grid study recorded before the sections existed (record format version 1, flat names), as
+#: committed in results/grid/drago-no-reviewer/seed1.json.gz at 7f49cd3.
+FLAT_RECORD = ROOT / "tests" / "data" / "record-v1-drago-no-reviewer-seed1.json.gz"
 
 
 @pytest.mark.parametrize("override, message", [
@@ -96,20 +98,35 @@ def test_a_run_written_with_the_flat_names_is_read_with_the_same_settings(tmp_pa
     assert [d for d in config_diffs(cfg, wanted) if not d.startswith("agent.schedule_clock")] == []
 
 
-def test_a_record_written_with_the_flat_names_keeps_its_unit_done(tmp_path):
-    """The committed record of version 1 is read as this version, with the protocol today's code computes for
-    its unit: a study with it in its records folder does not run that unit again."""
+def test_a_record_written_with_the_flat_names_keeps_its_settings(tmp_path, monkeypatch):
+    """A record of version 1 is read as this version, with the settings today's code computes for its unit: with
+    the evaluations of its day, a study with it in its records folder does not run that unit again."""
     record = read_record(FLAT_RECORD)
     assert record["version"] == 2 and "agent.tdmpc.horizon" in record["protocol"]["run"]
     assert not any(key.startswith(("agent.pets.", "method.ewc.")) for key in record["protocol"]["run"])
     records = tmp_path / "records"
     (records / "drago-no-reviewer").mkdir(parents=True)
     shutil.copy(FLAT_RECORD, records / "drago-no-reviewer" / "seed1.json.gz")
+    monkeypatch.setattr(unit, "EVALUATION_VERSIONS", {})  # the evaluations as they were when it was recorded
     plan = plan_study("minigrid-cpu", methods=["drago-no-reviewer"], seeds=[1, 2], out=tmp_path / "study",
                       overrides=["train.threads=1"], records=records)
     # Seed 1 is recorded with the study's protocol: done, nothing to run or record again.
     assert [(run.seed, run.state, run.recorded) for run in plan.runs] == [(1, DONE, True), (2, START, False)]
     assert [job.seed for job in plan.record_jobs] == [2]
+
+
+def test_a_unit_recorded_with_an_earlier_evaluation_is_recorded_again(tmp_path):
+    """Today's swap test (components@2) is not the one in the version-1 record: its unit is due again, and the
+    plan says why."""
+    records = tmp_path / "records"
+    (records / "drago-no-reviewer").mkdir(parents=True)
+    shutil.copy(FLAT_RECORD, records / "drago-no-reviewer" / "seed1.json.gz")
+    plan = plan_study("minigrid-cpu", methods=["drago-no-reviewer"], seeds=[1], out=tmp_path / "study",
+                      overrides=["train.threads=1"], records=records)
+    assert [(run.seed, run.state, run.recorded) for run in plan.runs] == [(1, START, False)]
+    assert [job.seed for job in plan.record_jobs] == [1]
+    assert record_verdict(records / "drago-no-reviewer" / "seed1.json.gz", plan.record_jobs[0].protocol).count(
+        "components") >= 1
 
 
 def test_every_setting_the_docs_and_presets_name_exists():

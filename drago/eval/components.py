@@ -44,7 +44,9 @@ on probe states and follow uniformly random actions through the true dynamics, p
 a fixed budget, the same for every method, about 2% of the updates of one task of ``minigrid-cpu``. It
 cannot teach the model anything: the update runs with ``train_world_model=False``, so the world model's
 optimizer never steps, the heads see the model's latents detached, and the model's weights are checked
-unchanged afterwards.
+unchanged afterwards. One refit's return on a drifted model is close to all or nothing (its planner reaches
+the goal or does not), and which one depends on the refit's own random batches, so the swap test makes
+:data:`REFIT_DRAWS` refits with their own seeds and records their mean return, with the lowest and highest.
 
 PETS has no value or policy heads and a reward head of its own kind: for a PETS run only the dynamics rows
 are measured, and the others say so.
@@ -91,8 +93,8 @@ from drago.eval.zero_shot import (
 from drago.training.rundir import RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
 
-__all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_UPDATES", "SWAP_FILE", "ComponentsError", "GridProbe",
-           "HeadsPlanner", "component_errors", "components_checkpoints", "components_of_run", "evaluate_components",
+__all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_DRAWS", "REFIT_UPDATES", "SWAP_FILE", "ComponentsError",
+           "GridProbe", "HeadsPlanner", "component_errors", "components_checkpoints", "components_of_run", "evaluate_components",
            "grid_probe", "heads_return", "rank_correlation", "refit_heads", "write_components_csv", "write_swap_csv"]
 
 COMPONENTS = ("dynamics_1step", "dynamics_hstep", "reward_error", "value_error", "value_order", "policy_agreement",
@@ -101,9 +103,11 @@ COMPONENTS_FILE = "components.csv"
 SWAP_FILE = "swap.csv"
 COMPONENT_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "component", "value", "note")
 SWAP_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "optimum", "saved", "moved", "refit",
-                "true_reward", "refit_updates")
+                "true_reward", "refit_updates", "refit_min", "refit_max", "refit_draws")
 #: Head updates of the swap test's refit (see the module docstring).
 REFIT_UPDATES = 200
+#: Independent refits of each swap-test case, whose mean return is its refit column (see the module docstring).
+REFIT_DRAWS = 5
 #: Rows of each refit update's batch.
 REFIT_BATCH = 256
 #: Episodes of each planning return (one per start heading, as the zero-shot matrix plays).
@@ -412,16 +416,21 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
             if heads[k] is None or task_room(task) is None:
                 continue
             probe = grid_probe(task, discount, cfg.env.dense_reward)
-            refit = refit_heads(models[n], heads[k], probe, loaded[n].config.agent, seed=cfg.train.seed)
-            refit_return = heads_return(models[n], refit, probe.task, horizon, discount, seed=cfg.train.seed,
-                                        stage=checkpoint.stage, lattice=lattices[n])
+            refits = []
+            for draw in range(REFIT_DRAWS):
+                refit = refit_heads(models[n], heads[k], probe, loaded[n].config.agent,
+                                    seed=cfg.train.seed * REFIT_DRAWS + draw)
+                refits.append(float(heads_return(models[n], refit, probe.task, horizon, discount,
+                                                 seed=cfg.train.seed, stage=checkpoint.stage,
+                                                 lattice=lattices[n]).mean()))
             zero = true_reward.get((checkpoint.stage, task))
             swaps.append({"run": name, "method": cfg.method.name, "seed": cfg.train.seed,
                           "stage": checkpoint.stage, "stage_task": checkpoint.task, "task": task,
                           "optimum": _optimum(probe.task), "saved": own_return[(k, k)], "moved": own_return[(n, k)],
-                          "refit": float(refit_return.mean()),
+                          "refit": float(np.mean(refits)),
                           "true_reward": "" if zero is None else float(zero["return"]),
-                          "refit_updates": REFIT_UPDATES})
+                          "refit_updates": REFIT_UPDATES, "refit_min": min(refits), "refit_max": max(refits),
+                          "refit_draws": REFIT_DRAWS})
     return rows, swaps
 
 

@@ -50,7 +50,7 @@ from drago.training.records import (
 from drago.training.rundir import (CONFIG_FILE, SUMMARY_FILE, TRANSFER_FOLDER, RunCheckpoint, atomic_write_text,
                                    read_run_config)
 
-__all__ = ["CELLS_FILE", "REVIEWER_PAY_FILE", "PaySummary", "evaluate_unit", "read_cells", "read_reviewer_pay",
+__all__ = ["CELLS_FILE", "EVALUATION_VERSIONS", "REVIEWER_PAY_FILE", "PaySummary", "evaluate_unit", "read_cells", "read_reviewer_pay",
            "record_unit", "unit_cpu_seconds", "unit_evaluations", "unit_protocol"]
 
 CELLS_FILE = "cells.json"
@@ -70,9 +70,18 @@ def unit_evaluations(cfg: Config) -> list[str]:
     return ["retention", "costs"]
 
 
+#: Evaluations whose measure changed after units were recorded with it, by version. The protocol names such
+#: an evaluation ``NAME@VERSION``, so a unit recorded with an earlier version is due again; a study then
+#: redoes only its record job (the evaluations are made again from the run's checkpoints), as long as the
+#: run directory is still there. components@2: the swap test's refit is the mean of several refits.
+EVALUATION_VERSIONS = {"components": 2}
+
+
 def unit_protocol(run: Config, transfers: Mapping[str, Config]) -> dict[str, Any]:
     """A unit's protocol (:func:`~drago.training.records.run_protocol`) with this drago's evaluations."""
-    return run_protocol(run, transfers, unit_evaluations(run))
+    evaluations = [f"{name}@{EVALUATION_VERSIONS[name]}" if name in EVALUATION_VERSIONS else name
+                   for name in unit_evaluations(run)]
+    return run_protocol(run, transfers, evaluations)
 
 
 # ---- the evaluations -------------------------------------------------------------------------------

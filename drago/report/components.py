@@ -106,19 +106,24 @@ def _swap_table(swaps: dict[str, list[dict[str, str]]]) -> Table | None:
             saved, moved, refit, true = share("saved"), share("moved"), share("refit"), share("true_reward")
             lost = [s - m for s, m in zip(saved, moved)]
             recovered = [r - m for r, m in zip(refit, moved)]
+            lowest, highest = share("refit_min"), share("refit_max")  # absent from a single-refit evaluation
+            spread = f"{min(lowest):.2f}–{max(highest):.2f}" if lowest and highest else "–"
             rows.append((label, task, str(stage), str(len(mine)), *(format_summary(v)[0] for v in
-                                                                     (saved, moved, refit, true, lost, recovered))))
+                                                                     (saved, moved, refit)), spread,
+                         *(format_summary(v)[0] for v in (true, lost, recovered))))
     if not rows:
         return None
     return Table("swap-test", "The swap test: did the model or the heads forget?",
                  "Return on an earlier task k after stage N, as a fraction of its DP optimum, planning with: the "
                  "model and heads saved after k (saved); the model after N under the heads saved after k (moved); "
                  "the model after N with k's heads refit on k's probe for a fixed budget that cannot change the "
-                 "model (refit); the model after N with the true reward (zero-shot). saved − moved is the whole "
-                 "loss; refit − moved what re-attaching the heads recovers, knowledge the model still held; what "
-                 "the refit leaves is the model's own forgetting. Mean ± std [95% CI] over seeds.",
-                 ("method", "task k", "after stage N", "seeds", "saved", "moved", "refit", "zero-shot",
-                  "lost (saved − moved)", "recovered (refit − moved)"), rows)
+                 "model (refit: the mean of several refits with their own seeds; refit range: the lowest and "
+                 "highest single refit over all seeds, since one refit tends to reach the goal or not); the model "
+                 "after N with the true reward (zero-shot). saved − moved is the whole loss; refit − moved what "
+                 "re-attaching the heads recovers, knowledge the model still held; what the refit leaves is the "
+                 "model's own forgetting. Mean ± std [95% CI] over seeds.",
+                 ("method", "task k", "after stage N", "seeds", "saved", "moved", "refit", "refit range",
+                  "zero-shot", "lost (saved − moved)", "recovered (refit − moved)"), rows)
 
 
 def _mb(n: float) -> str:

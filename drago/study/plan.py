@@ -402,7 +402,8 @@ def _plan_recorded_unit(plan: StudyPlan, cfg: Config, run_dir: Path, label: str,
     verdict = record_verdict(path, protocol)
     if verdict is not None:
         if verdict != "missing":
-            plan.notes.append(f"not used, its unit runs again and a new record replaces it: {verdict}")
+            plan.notes.append(f"not used: its unit is made again here and a new record replaces it (the run and "
+                              f"transfers the study folder already holds finished are kept): {verdict}")
         return False
     method, seed = cfg.method.name, cfg.train.seed
     run = Job(label, "run", method, seed, run_dir, DONE, [], logs / f"{method}-seed{seed}.log", cfg.train.threads,

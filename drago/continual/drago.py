@@ -243,7 +243,8 @@ class Drago(ContinualMethod):
     def _track_threshold(self, parts: DragoTaskParts, score: torch.Tensor) -> None:
         # Kept as a tensor so the hot loop never waits for the device.
         momentum = self.cfg.method.reviewer.threshold_momentum
-        parts.threshold_new = momentum * torch.as_tensor(parts.threshold_new, dtype=score.dtype) + (1 - momentum) * score
+        previous = torch.as_tensor(parts.threshold_new, dtype=score.dtype)
+        parts.threshold_new = momentum * previous + (1 - momentum) * score
 
     # ---- mid-task resume -------------------------------------------------------------------------
     def task_state_dict(self, task: TaskState) -> dict[str, Any]:

@@ -94,8 +94,9 @@ from drago.training.rundir import RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
 
 __all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_DRAWS", "REFIT_UPDATES", "SWAP_FILE", "ComponentsError",
-           "GridProbe", "HeadsPlanner", "component_errors", "components_checkpoints", "components_of_run", "evaluate_components",
-           "grid_probe", "heads_return", "rank_correlation", "refit_heads", "write_components_csv", "write_swap_csv"]
+           "GridProbe", "HeadsPlanner", "component_errors", "components_checkpoints", "components_of_run",
+           "evaluate_components", "grid_probe", "heads_return", "rank_correlation", "refit_heads",
+           "write_components_csv", "write_swap_csv"]
 
 COMPONENTS = ("dynamics_1step", "dynamics_hstep", "reward_error", "value_error", "value_order", "policy_agreement",
               "return_own_heads")

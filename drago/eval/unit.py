@@ -50,8 +50,8 @@ from drago.training.records import (
 from drago.training.rundir import (CONFIG_FILE, SUMMARY_FILE, TRANSFER_FOLDER, RunCheckpoint, atomic_write_text,
                                    read_run_config)
 
-__all__ = ["CELLS_FILE", "EVALUATION_VERSIONS", "REVIEWER_PAY_FILE", "PaySummary", "evaluate_unit", "read_cells", "read_reviewer_pay",
-           "record_unit", "unit_cpu_seconds", "unit_evaluations", "unit_protocol"]
+__all__ = ["CELLS_FILE", "EVALUATION_VERSIONS", "REVIEWER_PAY_FILE", "PaySummary", "evaluate_unit", "read_cells",
+           "read_reviewer_pay", "record_unit", "unit_cpu_seconds", "unit_evaluations", "unit_protocol"]
 
 CELLS_FILE = "cells.json"
 REVIEWER_PAY_FILE = "reviewer_pay.json"

@@ -55,9 +55,10 @@ from drago.eval.heldout import format_table as format_retention_table
 from drago.eval.heldout import heldout_checkpoints as retention_checkpoints
 from drago.eval.predictor import WorldModelPredictor, load_world_model
 from drago.report import ReportError, build_report
-from drago.study.command import SLURM_OPTIONS, StudyInterrupted, StudyOutcome, study_command
+from drago.study.command import SLURM_OPTIONS, StudyOutcome, study_command
 from drago.training.checkpoint import CheckpointError, NonFiniteCheckpoint
-from drago.training.run import default_run_dir, new_run, new_transfer, resume, run_paper_cases, run_transfer
+from drago.training.run import (Interrupted, continue_with, default_run_dir, new_run, new_transfer, resume,
+                               run_paper_cases, run_transfer)
 from drago.training.records import RECORD_SUFFIX, RecordError, read_record
 from drago.training.rundir import RunDirError, read_run_config
 from drago.training.runs import Record, Run
@@ -78,7 +79,7 @@ __all__ = [
     "describe_settings", "get_domain", "gym_domain", "load_config", "load_world_model", "methods", "new_run",
     "new_transfer", "plugin_problems", "register_domain", "register_method", "resume", "retention_matrix",
     "resolve_speed", "run_paper_cases", "run_transfer", "speed_summary", "task_descriptions", "train",
-    "SLURM_OPTIONS", "StudyInterrupted", "StudyOutcome", "study_command",
+    "SLURM_OPTIONS", "StudyOutcome", "study_command", "Interrupted", "continue_with",
 ]
 
 

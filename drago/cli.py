@@ -110,7 +110,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from drago.api import default_run_dir, load_config, new_run, speed_summary
+    from drago.api import continue_with, default_run_dir, load_config, new_run, speed_summary
 
     if args.seed is not None and args.seed < 0:
         raise UsageError(f"--seed must be a non-negative integer, got {args.seed}")
@@ -123,28 +123,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
         trainer.logger.print(note)
     # Closing flushes TensorBoard and ends the W&B run (marked failed when an exception is on its way out).
     try:
-        with _on_interrupt(f"continue with `drago resume {run_dir}`"):
+        with continue_with(f"continue with `drago resume {run_dir}`"):
             trainer.run()
     finally:
         trainer.logger.close()
     return 0
 
 
-class _Interrupted(Exception):
-    """Ctrl-C or SIGTERM during a command that knows how it is continued (the message says how)."""
-
-
-@contextlib.contextmanager
-def _on_interrupt(how_to_continue: str):
-    """Inside, an interrupt makes :func:`main` print ``how_to_continue`` instead of the generic hint."""
-    try:
-        yield
-    except KeyboardInterrupt:
-        raise _Interrupted(how_to_continue) from None
-
-
 def _cmd_resume(args: argparse.Namespace) -> int:
-    from drago.api import resume
+    from drago.api import continue_with, resume
 
     trainer = resume(args.run_dir, progress=not args.no_progress)
     done = trainer.completed_tasks()
@@ -154,7 +141,7 @@ def _cmd_resume(args: argparse.Namespace) -> int:
         return 0
     trainer.logger.print(f"resuming {args.run_dir}: {done} of {len(trainer.cfg.env.tasks)} tasks complete")
     try:
-        with _on_interrupt(f"continue with `drago resume {args.run_dir}`"):
+        with continue_with(f"continue with `drago resume {args.run_dir}`"):
             trainer.run()
     finally:
         trainer.logger.close()
@@ -340,7 +327,7 @@ def _add_transfer_parser(sub) -> None:
 
 
 def _cmd_transfer(args: argparse.Namespace) -> int:
-    from drago.api import new_transfer, run_paper_cases, run_transfer
+    from drago.api import continue_with, new_transfer, run_paper_cases, run_transfer
 
     if args.paper_cases and (args.task is not None or args.after is not None):
         raise UsageError("--paper-cases chooses the tasks and stages itself; drop --task and --after")
@@ -352,13 +339,13 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
     if args.paper_cases:
         # The same command skips finished cases and resumes the others; --force would redo every case.
         again = "again without --force" if args.force else "again"
-        with _on_interrupt(f"run the same `drago transfer --paper-cases` command {again} to continue"):
+        with continue_with(f"run the same `drago transfer --paper-cases` command {again} to continue"):
             run_paper_cases(args.run_dir, out=args.out, force=args.force, progress=not args.no_progress, **options)
         return 0
     trainer = new_transfer(args.run_dir, args.task, args.after, out=args.out, force=args.force,
                            progress=not args.no_progress, **options)
     trainer.logger.print(f"drago transfer {args.run_dir} --task {args.task} --after {args.after} -> {trainer.run_dir}")
-    with _on_interrupt(f"continue with `drago resume {trainer.run_dir}`"):
+    with continue_with(f"continue with `drago resume {trainer.run_dir}`"):
         run_transfer(trainer)
     return 0
 
@@ -559,7 +546,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    from drago.api import (CheckpointError, ConfigError, NonFiniteCheckpoint, RunDirError, StudyInterrupted,
+    from drago.api import (CheckpointError, ConfigError, Interrupted, NonFiniteCheckpoint, RunDirError,
                            TrainingDiverged)
 
     try:
@@ -576,7 +563,7 @@ def _main(argv: list[str] | None) -> int:
     except (TrainingDiverged, NonFiniteCheckpoint) as err:
         print(f"drago: error: {err}", file=sys.stderr)
         return 1
-    except (_Interrupted, StudyInterrupted) as interrupted:  # a command that says how it is continued
+    except Interrupted as interrupted:  # a command that says how it is continued
         print(f"drago: interrupted; {interrupted}", file=sys.stderr)
         return 130
     except BrokenPipeError:

@@ -5,7 +5,6 @@ write its report), on this machine or through SLURM. The command line parses its
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,9 +17,10 @@ from drago.study.report import write_report
 from drago.study.slurm.monitoring import active_job_ids, status_lines, wait_study
 from drago.study.slurm.options import job_overrides, make_options, require_submitit
 from drago.study.slurm.submission import describe_resources, describe_submission, submit_study
+from drago.training.run import continue_with
 from drago.training.transfer import DEFAULT_EPISODES
 
-__all__ = ["MODES", "SLURM_OPTIONS", "StudyInterrupted", "StudyOutcome", "study_command"]
+__all__ = ["MODES", "SLURM_OPTIONS", "StudyOutcome", "study_command"]
 
 MODES = ("run", "dry-run", "status", "report-only")
 BACKENDS = ("local", "slurm")
@@ -36,18 +36,6 @@ class StudyOutcome:
 
     ok: bool
     message: str | None = None
-
-
-class StudyInterrupted(KeyboardInterrupt):
-    """Ctrl-C or SIGTERM while the study's jobs were run, submitted or followed; the message says how to go on."""
-
-
-@contextlib.contextmanager
-def _continue_with(how: str):
-    try:
-        yield
-    except KeyboardInterrupt:
-        raise StudyInterrupted(how) from None
 
 
 def study_command(preset: str | None = None, methods: Sequence[str] | None = None,
@@ -88,7 +76,7 @@ def study_command(preset: str | None = None, methods: Sequence[str] | None = Non
     Raises:
         StudyError: A bad argument (one line naming it), SLURM options without the SLURM backend, a local study
             in a folder whose SLURM jobs are queued or running, or another study working in the folder.
-        StudyInterrupted: Ctrl-C while running, submitting or following the jobs (after the local jobs stopped).
+        Interrupted: Ctrl-C while running, submitting or following the jobs (after the local jobs stopped).
         ConfigError: An unknown preset, method or setting.
     """
     if mode not in MODES:
@@ -140,20 +128,20 @@ def study_command(preset: str | None = None, methods: Sequence[str] | None = Non
                 echo(line)
         return StudyOutcome(True)
     if on_slurm:
-        with _continue_with("run the same `drago study` command again: it submits what is missing, never a "
+        with continue_with("run the same `drago study` command again: it submits what is missing, never a "
                             "job SLURM still has"):
             submission = submit_study(plan, options, echo=echo)
         if submission.report_error:
             return StudyOutcome(False, f"no report: {submission.report_error}")
         if not wait:
             return StudyOutcome(True)
-        with _continue_with("the jobs carry on in SLURM; the same command with --status shows them"):
+        with continue_with("the jobs carry on in SLURM; the same command with --status shows them"):
             result = wait_study(submission, echo=echo)
     else:
         active = active_job_ids(plan.out)
         if active:
             raise StudyError(f"SLURM jobs of this study are queued or running in {plan.out} (jobs "
                              f"{', '.join(active)}); follow them with --backend slurm --status, or scancel them first")
-        with _continue_with("run the same `drago study` command again to continue"):
+        with continue_with("run the same `drago study` command again to continue"):
             result = run_study(plan, echo=echo)
     return StudyOutcome(result.ok, result.summary_line())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 from pathlib import Path
@@ -24,6 +25,22 @@ from drago.training.tracking import check_tracking, wandb_tracker
 from drago.training.trainer import Trainer, completed_tasks, global_env_step
 from drago.training.visitation import VisitationRecorder
 from drago.training.transfer import describe, paper_transfer_plan, plan_transfer, transfer_summary
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM during work that knows how it is continued (a run, a transfer, a study): the message
+    says how, and ``drago`` prints it instead of the generic hint."""
+
+
+@contextlib.contextmanager
+def continue_with(how: str):
+    """Inside, an interrupt becomes :class:`Interrupted` saying ``how`` to continue (an inner one's word stands)."""
+    try:
+        yield
+    except Interrupted:
+        raise
+    except KeyboardInterrupt:
+        raise Interrupted(how) from None
 
 
 def default_run_dir(cfg: Config) -> Path:

@@ -116,7 +116,7 @@ def test_a_record_written_with_the_flat_names_keeps_its_settings(tmp_path, monke
 
 
 def test_a_unit_recorded_with_an_earlier_evaluation_is_recorded_again(tmp_path):
-    """Today's swap test (components@2) is not the one in the version-1 record: its unit is due again, and the
+    """Today's swap test (components@N, N > 1) is not the one in the version-1 record: its unit is due again, and the
     plan says why."""
     records = tmp_path / "records"
     (records / "drago-no-reviewer").mkdir(parents=True)

@@ -39,14 +39,17 @@ b -> c what a cheap head refit recovers (that knowledge was still in the model),
 model's own forgetting.
 
 **The refit** re-attaches the heads saved after k and trains them with the agent's own update (paper §2's
-losses, its optimizers at its learning rate) for :data:`REFIT_UPDATES` updates of H-step sequences that start
-on probe states and follow uniformly random actions through the true dynamics, paid the task's true reward:
-a fixed budget, the same for every method, about 2% of the updates of one task of ``minigrid-cpu``. It
-cannot teach the model anything: the update runs with ``train_world_model=False``, so the world model's
-optimizer never steps, the heads see the model's latents detached, and the model's weights are checked
-unchanged afterwards. One refit's return on a drifted model is close to all or nothing (its planner reaches
-the goal or does not), and which one depends on the refit's own random batches, so the swap test makes
-:data:`REFIT_DRAWS` refits with their own seeds and records their mean return, with the lowest and highest.
+losses and optimizers) for :data:`REFIT_UPDATES` updates of H-step sequences that start on probe states and
+follow uniformly random actions through the true dynamics, paid the task's true reward: a fixed budget, the
+same for every method, a tenth of the updates of one task of ``minigrid-cpu``. Its learning rate decays
+linearly from the agent's to :data:`REFIT_LR_DECAY` of it over those updates, so the refit settles where the
+model's imagined states lead the heads rather than wherever a short refit at a constant learning rate happens
+to stop, which depends on its seed (measured by ``benchmarks/refit_budget.py``; docs: Evaluation, "Which part
+forgot"). It cannot teach the model anything: the update runs with
+``train_world_model=False``, so the world model's optimizer never steps, the heads see the model's latents
+detached, and the model's weights are checked unchanged afterwards. A refit's return can still be close to
+all or nothing (its planner reaches the goal or does not), so the swap test makes :data:`REFIT_DRAWS` refits
+with their own seeds and records their mean return, with the lowest and highest.
 
 PETS has no value or policy heads and a reward head of its own kind: for a PETS run only the dynamics rows
 are measured, and the others say so.
@@ -93,10 +96,10 @@ from drago.eval.zero_shot import (
 from drago.training.rundir import RunDirError, write_rows_csv
 from drago.training.rundir import run_checkpoints as _run_checkpoints
 
-__all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_DRAWS", "REFIT_UPDATES", "SWAP_FILE", "ComponentsError",
-           "GridProbe", "HeadsPlanner", "component_errors", "components_checkpoints", "components_of_run",
-           "evaluate_components", "grid_probe", "heads_return", "rank_correlation", "refit_heads",
-           "write_components_csv", "write_swap_csv"]
+__all__ = ["COMPONENTS", "COMPONENTS_FILE", "REFIT_DRAWS", "REFIT_LR_DECAY", "REFIT_UPDATES", "SWAP_FILE",
+           "ComponentsError", "GridProbe", "HeadsPlanner", "RunStages", "component_errors", "components_checkpoints",
+           "components_of_run", "evaluate_components", "grid_probe", "heads_return", "load_run_stages",
+           "rank_correlation", "refit_heads", "write_components_csv", "write_swap_csv"]
 
 COMPONENTS = ("dynamics_1step", "dynamics_hstep", "reward_error", "value_error", "value_order", "policy_agreement",
               "return_own_heads")
@@ -106,9 +109,11 @@ COMPONENT_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "co
 SWAP_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "optimum", "saved", "moved", "refit",
                 "true_reward", "refit_updates", "refit_min", "refit_max", "refit_draws")
 #: Head updates of the swap test's refit (see the module docstring).
-REFIT_UPDATES = 200
+REFIT_UPDATES = 1000
+#: The refit's learning rate at its last update, as a fraction of the agent's (see the module docstring).
+REFIT_LR_DECAY = 0.01
 #: Independent refits of each swap-test case, whose mean return is its refit column (see the module docstring).
-REFIT_DRAWS = 5
+REFIT_DRAWS = 3
 #: Rows of each refit update's batch.
 REFIT_BATCH = 256
 #: Episodes of each planning return (one per start heading, as the zero-shot matrix plays).
@@ -332,8 +337,9 @@ def _refit_batch(probe: GridProbe, horizon: int, generator: np.random.Generator)
 
 
 def refit_heads(model: torch.nn.Module, heads: TaskHeads, probe: GridProbe, cfg: AgentConfig,
-                updates: int = REFIT_UPDATES, seed: int = 0) -> TaskHeads:
-    """A copy of ``heads`` trained on ``probe``'s task over the frozen ``model`` (see the module docstring).
+                updates: int = REFIT_UPDATES, seed: int = 0, lr_decay: float = REFIT_LR_DECAY) -> TaskHeads:
+    """A copy of ``heads`` trained on ``probe``'s task over the frozen ``model`` (see the module docstring), its
+    learning rate decaying linearly from ``cfg.lr`` to ``lr_decay * cfg.lr`` (1: constant).
 
     Raises:
         RuntimeError: the model's weights changed (they cannot, by construction; checked all the same).
@@ -341,6 +347,8 @@ def refit_heads(model: torch.nn.Module, heads: TaskHeads, probe: GridProbe, cfg:
     before = {k: v.detach().clone() for k, v in model.state_dict().items()}
     frozen = torch.optim.SGD(model.parameters(), lr=0.0)  # never stepped: train_world_model=False
     cfg = with_speed(cfg, precision="float32", compile="false")
+    cfg = dataclasses.replace(cfg, tdmpc=dataclasses.replace(cfg.tdmpc, lr_final=cfg.lr * lr_decay,
+                                                             lr_schedule_steps=max(int(updates) - 1, 1)))
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         agent = Agent(model, frozen, cfg, discrete=True)
@@ -361,6 +369,65 @@ def _rows_note(kind: str) -> str:
     return f"agent.kind={kind} has no task heads apart from its world model: only the dynamics are measured"
 
 
+@dataclass
+class RunStages:
+    """A grid run's finished stages as the component measures read them: stage N's world model (with its
+    lattice table) and the heads saved at its end (None for an agent kind without task heads)."""
+
+    cfg: Any
+    checkpoints: list
+    agent_configs: list[AgentConfig]
+    models: list[torch.nn.Module]
+    heads: list[TaskHeads | None]
+    lattices: list[LatticeModel]
+
+    @property
+    def horizon(self) -> int:
+        return int(self.cfg.agent.tdmpc.horizon)
+
+    @property
+    def discount(self) -> float:
+        return float(self.cfg.agent.tdmpc.discount)
+
+    def probe(self, k: int) -> GridProbe:
+        return grid_probe(self.checkpoints[k].task, self.discount, self.cfg.env.dense_reward)
+
+    def planned_return(self, n: int, heads: TaskHeads, k: int) -> float:
+        """The mean return on task k of planning with stage n's model and ``heads`` (:func:`heads_return`)."""
+        returns = heads_return(self.models[n], heads, self.probe(k).task, self.horizon, self.discount,
+                               seed=self.cfg.train.seed, stage=self.checkpoints[n].stage, lattice=self.lattices[n])
+        return float(returns.mean())
+
+    def refit_seeds(self, draws: int = REFIT_DRAWS) -> list[int]:
+        """The seeds of the swap test's refits of this run (their own: no two runs' seeds share one)."""
+        return [self.cfg.train.seed * draws + draw for draw in range(draws)]
+
+
+def load_run_stages(run_dir: str | Path, device: str = "cpu") -> RunStages:
+    """A grid run's finished stages (:class:`RunStages`).
+
+    Raises:
+        ComponentsError: not a grid run, or no finished task.
+        drago.training.checkpoint.CheckpointError: a corrupt checkpoint.
+    """
+    from drago.training.checkpoint import load_task_checkpoint
+
+    cfg, checkpoints = components_checkpoints(Path(run_dir))
+    loaded = [load_task_checkpoint(c.path, device) for c in checkpoints]
+    models = [c.world_model.eval() for c in loaded]
+    heads: list[TaskHeads | None] = []
+    for c in loaded:
+        if not capabilities_of(cfg.agent.kind).task_heads or "learner" not in c.data:
+            heads.append(None)
+            continue
+        h = TaskHeads(c.spec.obs_dim, c.spec.action_dim, c.config.agent.tdmpc.mlp_dim, True,
+                      fast_tanh=c.config.agent.tdmpc.fast_tanh)
+        h.load_state_dict(c.data["learner"])
+        heads.append(h.eval())
+    return RunStages(cfg, checkpoints, [c.config.agent for c in loaded], models, heads,
+                     [lattice_model(model_dynamics(model)) for model in models])
+
+
 def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, Any]] = (),
                       device: str = "cpu") -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """The component rows (stage x task x component) and the swap-test rows of a grid run's checkpoints.
@@ -372,41 +439,24 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
         ComponentsError: not a grid run, or no finished task.
         drago.training.checkpoint.CheckpointError: a corrupt checkpoint.
     """
-    from drago.training.checkpoint import load_task_checkpoint
-
-    run_dir = Path(run_dir)
-    cfg, checkpoints = components_checkpoints(run_dir)
+    stages = load_run_stages(run_dir, device)
+    cfg, checkpoints, models, heads = stages.cfg, stages.checkpoints, stages.models, stages.heads
     name = f"{cfg.method.name}/seed{cfg.train.seed}"
     kind = cfg.agent.kind
-    horizon, discount = int(cfg.agent.tdmpc.horizon), float(cfg.agent.tdmpc.discount)
-    loaded = [load_task_checkpoint(c.path, device) for c in checkpoints]
-    models = [c.world_model.eval() for c in loaded]
-    heads: list[TaskHeads | None] = []
-    for c in loaded:
-        if not capabilities_of(kind).task_heads or "learner" not in c.data:
-            heads.append(None)
-            continue
-        h = TaskHeads(c.spec.obs_dim, c.spec.action_dim, c.config.agent.tdmpc.mlp_dim, True,
-                      fast_tanh=c.config.agent.tdmpc.fast_tanh)
-        h.load_state_dict(c.data["learner"])
-        heads.append(h.eval())
-    lattices = [lattice_model(model_dynamics(model)) for model in models]
+    horizon = stages.horizon
     true_reward = {(int(r["stage"]), r["task"]): r for r in zero_shot_rows}
     rows, swaps = [], []
     own_return: dict[tuple[int, int], float] = {}
     for n, checkpoint in enumerate(checkpoints):
         for k in range(n + 1):
-            task = checkpoints[k].task
-            if task_room(task) is None:
+            if task_room(checkpoints[k].task) is None:
                 continue
-            probe = grid_probe(task, discount, cfg.env.dense_reward)
+            probe = stages.probe(k)
             base = {"run": name, "method": cfg.method.name, "seed": cfg.train.seed, "stage": checkpoint.stage,
-                    "stage_task": checkpoint.task, "task": task}
+                    "stage_task": checkpoint.task, "task": checkpoints[k].task}
             measures = component_errors(models[n], heads[k], probe, horizon)
             if heads[k] is not None:
-                returns = heads_return(models[n], heads[k], probe.task, horizon, discount, seed=cfg.train.seed,
-                                       stage=checkpoint.stage, lattice=lattices[n])
-                own_return[(n, k)] = float(returns.mean())
+                own_return[(n, k)] = stages.planned_return(n, heads[k], k)
                 measures["return_own_heads"] = own_return[(n, k)] / _optimum(probe.task)
             note = _rows_note(kind)
             rows += [dict(base, component=c, value=measures.get(c, math.nan), note="" if c in measures else note)
@@ -416,14 +466,10 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
             task = checkpoints[k].task
             if heads[k] is None or task_room(task) is None:
                 continue
-            probe = grid_probe(task, discount, cfg.env.dense_reward)
-            refits = []
-            for draw in range(REFIT_DRAWS):
-                refit = refit_heads(models[n], heads[k], probe, loaded[n].config.agent,
-                                    seed=cfg.train.seed * REFIT_DRAWS + draw)
-                refits.append(float(heads_return(models[n], refit, probe.task, horizon, discount,
-                                                 seed=cfg.train.seed, stage=checkpoint.stage,
-                                                 lattice=lattices[n]).mean()))
+            probe = stages.probe(k)
+            refits = [stages.planned_return(n, refit_heads(models[n], heads[k], probe, stages.agent_configs[n],
+                                                           seed=seed), k)
+                      for seed in stages.refit_seeds()]
             zero = true_reward.get((checkpoint.stage, task))
             swaps.append({"run": name, "method": cfg.method.name, "seed": cfg.train.seed,
                           "stage": checkpoint.stage, "stage_task": checkpoint.task, "task": task,
@@ -431,7 +477,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
                           "refit": float(np.mean(refits)),
                           "true_reward": "" if zero is None else float(zero["return"]),
                           "refit_updates": REFIT_UPDATES, "refit_min": min(refits), "refit_max": max(refits),
-                          "refit_draws": REFIT_DRAWS})
+                          "refit_draws": len(refits)})
     return rows, swaps
 
 

@@ -73,8 +73,9 @@ def unit_evaluations(cfg: Config) -> list[str]:
 #: Evaluations whose measure changed after units were recorded with it, by version. The protocol names such
 #: an evaluation ``NAME@VERSION``, so a unit recorded with an earlier version is due again; a study then
 #: redoes only its record job (the evaluations are made again from the run's checkpoints), as long as the
-#: run directory is still there. components@2: the swap test's refit is the mean of several refits.
-EVALUATION_VERSIONS = {"components": 2}
+#: run directory is still there. components@2: the swap test's refit is the mean of several refits;
+#: components@3: each refit's learning rate decays over a longer budget, so that it settles.
+EVALUATION_VERSIONS = {"components": 3}
 
 
 def unit_protocol(run: Config, transfers: Mapping[str, Config]) -> dict[str, Any]:

@@ -67,6 +67,17 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
                 block = json.loads(text).get("transfer") or {}
                 point = (block.get("few_shot") or {}).get("equal_episodes") or {}
                 transfers[name.split("/")[1]] = point.get("fraction_of_optimal")
+        components = defaultdict(dict)  # (stage, task) -> component -> value
+        stage_tasks = {}  # stage -> the task trained in it
+        for r in _csv(files.get("components.csv", "")):
+            stage_tasks[int(r["stage"])] = r["stage_task"]
+            if r.get("value") not in (None, "", "nan"):
+                components[(int(r["stage"]), r["task"])][r["component"]] = float(r["value"])
+        swap = {}
+        for r in _csv(files.get("swap.csv", "")):
+            optimum = float(r["optimum"])
+            swap[(int(r["stage"]), r["task"])] = {column: float(r[column]) / optimum
+                                                 for column in SWAP_READINGS if r.get(column) not in (None, "")}
         units.append({"path": path,
                       "method": record["unit"]["method"], "seed": record["unit"]["seed"],
                       "digest": record["protocol"]["digest"], "provenance": record["provenance"],
@@ -75,9 +86,28 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
                       "coverage": {(int(r["stage"]), r["room"]): float(r["accuracy"]) for r in coverage},
                       "zero_shot": {(int(r["stage"]), r["task"]): float(r["fraction"]) for r in zero
                                     if r.get("fraction") not in (None, "")},
-                      "transfers": transfers})
+                      "transfers": transfers, "components": dict(components), "swap": swap,
+                      "stage_tasks": stage_tasks,
+                      "evaluations": record["protocol"].get("evaluations", [])})
     return units
 
+
+#: The swap test's returns (swap.csv), read as fractions of each task's DP optimum.
+SWAP_READINGS = ("saved", "moved", "refit", "true_reward")
+#: The rows of the "which part forgot" table: (source, key, what the row says).
+FORGOT_ROWS = (
+    ("components", "dynamics_1step", "dynamics, 1 step (share exact)"),
+    ("components", "dynamics_hstep", "dynamics, H steps (share exact)"),
+    ("components", "reward_error", "reward head error (MAE)"),
+    ("components", "value_order", "value order (rank corr. with Q*)"),
+    ("components", "policy_agreement", "policy = optimal action (share)"),
+    ("swap", "saved", "return: model and heads saved after the task (a)"),
+    ("swap", "moved", "return: last model under the saved heads (b)"),
+    ("swap", "refit", "return: last model, heads refit (c)"),
+    ("swap", "true_reward", "return: last model, true reward (d)"),
+)
+#: The methods of the "which part forgot" table, in the order the issue names them first.
+FORGOT_METHODS = ("drago", "continual", "ewc", "replay", "drago-no-rehearsal", "drago-no-reviewer", "scratch")
 
 WHAT = {
     "grid_records_final.csv": "fraction of the DP optimum each training task of a unit ended at",
@@ -86,6 +116,10 @@ WHAT = {
                                   "fraction of the DP optimum",
     "grid_records_transfers.csv": "few-shot return of each transfer case after 20 learner episodes, as a fraction "
                                   "of the DP optimum",
+    "grid_records_components.csv": "per-component retention (drago eval components) of every task seen after each "
+                                   "stage",
+    "grid_records_swap.csv": "the swap test of every earlier task after each stage, returns as fractions of the DP "
+                             "optimum",
 }
 
 
@@ -122,6 +156,13 @@ def write_data(units: list[dict]) -> list[Path]:
     rows = [{"method": u["method"], "seed": u["seed"], "case": case, "fraction_equal_episodes": frac}
             for u in units for case, frac in sorted(u["transfers"].items())]
     out.append(_write("grid_records_transfers.csv", rows, ("method", "seed", "case", "fraction_equal_episodes")))
+    rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "task": task, "component": name, "value": value}
+            for u in units for (stage, task), values in sorted(u["components"].items())
+            for name, value in values.items()]
+    out.append(_write("grid_records_components.csv", rows, ("method", "seed", "stage", "task", "component", "value")))
+    rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "task": task, **readings}
+            for u in units for (stage, task), readings in sorted(u["swap"].items())]
+    out.append(_write("grid_records_swap.csv", rows, ("method", "seed", "stage", "task", *SWAP_READINGS)))
     return out
 
 
@@ -139,6 +180,34 @@ def _old_rooms(u: dict) -> float | None:
     """Mean coverage of rooms 1-3 after the fourth task."""
     values = [u["coverage"].get((4, room)) for room in ROOMS[:3]]
     return None if None in values else float(np.mean(values))
+
+
+def _earlier_tasks_at_end(u: dict, source: str, key: str) -> float | None:
+    """A unit's mean reading over the tasks before its last stage, after that stage (rooms 1-3 after task 4)."""
+    if not u["stage_tasks"]:
+        return None
+    last = max(u["stage_tasks"])
+    values = [readings[key] for (stage, task), readings in u[source].items()
+              if stage == last and task != u["stage_tasks"][last] and key in readings]
+    return float(np.mean(values)) if values else None
+
+
+def forgot_table(units: list[dict]) -> list[str]:
+    """Which part forgot: each component's reading on the earlier tasks after the last stage, per method, mean
+    over those tasks per seed, then mean ± std [95% CI] over seeds."""
+    by = defaultdict(list)
+    for u in units:
+        by[u["method"]].append(u)
+    methods = [m for m in FORGOT_METHODS if by.get(m)] + sorted(set(by) - set(FORGOT_METHODS))
+    if not methods:
+        return []
+    lines = ["| part (earlier rooms after the last task) | " + " | ".join(f"`{m}`" for m in methods) + " |",
+             "|---|" + "---|" * len(methods)]
+    for source, key, what in FORGOT_ROWS:
+        cells = [_fmt([v for v in (_earlier_tasks_at_end(u, source, key) for u in by[m]) if v is not None])
+                 for m in methods]
+        lines.append(f"| {what} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def verdicts(units: list[dict]) -> list[tuple[str, str, str]]:
@@ -229,6 +298,14 @@ def section(units: list[dict], folder: Path) -> str:
               "(transfers and evaluations not included).", "",
               "| the paper's claim | verdict from the records | numbers (mean ± std [95% CI]) |", "|---|---|---|"]
     lines += [f"| {claim} | {verdict} | {numbers} |" for claim, verdict, numbers in verdicts(units)]
+    forgot = forgot_table(units)
+    if forgot:
+        lines += ["", "**Which part forgot** ([how each part is measured](evaluation.md#which-part-forgot-grid)): "
+                  "each part's reading on the rooms before the last task, after it (rooms 1-3 after room 4), mean "
+                  "over those rooms per seed, then over seeds. The heads' rows read each room's own heads, which no "
+                  "later task trains; the returns are fractions of each room's DP optimum. Swap-test evaluations: "
+                  + ", ".join(sorted({e for u in units for e in u["evaluations"] if e.startswith("components")}))
+                  + ".", "", *forgot]
     return "\n".join(lines)
 
 

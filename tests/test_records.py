@@ -270,6 +270,11 @@ def test_the_results_page_section_is_regenerated_from_the_records(recorded, tmp_
     assert "pending: 0 and 1 of 3 seeds recorded" in page  # drago against continual: one seed of continual only
     rows = (docs / "data" / "grid_records_final.csv").read_text().splitlines()
     assert rows[0] == "method,seed,task,fraction_of_optimal" and len(rows) == 1 + 2 * 4
+    # which part forgot: room 1 after the second task, its own heads, through the records' swap test
+    forgot = next(line for line in page.splitlines() if line.startswith("| dynamics, 1 step (share exact) |"))
+    assert forgot.count("(1 seed)") == 2  # continual and the second recorded method, one seed each
+    swap = (docs / "data" / "grid_records_swap.csv").read_text().splitlines()
+    assert swap[0] == "method,seed,stage,task,saved,moved,refit,true_reward" and swap[1].split(",")[2:4] == ["2", "room1"]
     assert (docs / "grid-report" / "report.md").is_file() and not (docs / "grid-report" / "report.html").exists()
     sources = json.loads((docs / "data" / "sources.json").read_text())
     assert sources["grid_records_final.csv"]["units"] == 2 and sources["grid_records_final.csv"]["commit"]

@@ -42,10 +42,10 @@ model's own forgetting.
 losses and optimizers) for :data:`REFIT_UPDATES` updates of H-step sequences that start on probe states and
 follow uniformly random actions through the true dynamics, paid the task's true reward: a fixed budget, the
 same for every method, a tenth of the updates of one task of ``minigrid-cpu``. Its learning rate decays
-linearly from the agent's to :data:`REFIT_LR_DECAY` of it over those updates, so the refit settles where the
-model's imagined states lead the heads rather than wherever a short refit at a constant learning rate happens
-to stop, which depends on its seed (measured by ``benchmarks/refit_budget.py``; docs: Evaluation, "Which part
-forgot"). It cannot teach the model anything: the update runs with
+linearly from the agent's to :data:`REFIT_LR_DECAY` of it over those updates, so that it reads where heads
+trained through the model settle rather than where a short refit at a constant learning rate happens to stop.
+It settles in more cases than the short refit, not in all (``benchmarks/refit_budget.py`` compares budgets;
+docs: Evaluation, "Which part forgot"). It cannot teach the model anything: the update runs with
 ``train_world_model=False``, so the world model's optimizer never steps, the heads see the model's latents
 detached, and the model's weights are checked unchanged afterwards. A refit's return can still be close to
 all or nothing (its planner reaches the goal or does not), so the swap test makes :data:`REFIT_DRAWS` refits

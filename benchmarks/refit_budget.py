@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drago.envs import GRID_DOMAIN, task_optimum
 from drago.eval.components import load_run_stages, refit_heads
 from drago.eval.coverage import task_room
 from drago.training.rundir import write_rows_csv
@@ -75,8 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             for k in range(n):
                 if stages.heads[k] is None or task_room(stages.checkpoints[k].task) is None:
                     continue
-                task = stages.probe(k).task
-                optimum = float(task_optimum(GRID_DOMAIN, task.name, task.dense))
+                optimum = stages.optimum(k)
                 moved = stages.planned_return(n, stages.heads[k], k) / optimum
                 for updates, decay in args.budgets:
                     started, refits = time.process_time(), []

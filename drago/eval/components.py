@@ -392,6 +392,10 @@ class RunStages:
     def probe(self, k: int) -> GridProbe:
         return grid_probe(self.checkpoints[k].task, self.discount, self.cfg.env.dense_reward)
 
+    def optimum(self, k: int) -> float:
+        """Task k's DP-optimal return (the denominator of every fraction of the swap test)."""
+        return _optimum(self.probe(k).task)
+
     def planned_return(self, n: int, heads: TaskHeads, k: int) -> float:
         """The mean return on task k of planning with stage n's model and ``heads`` (:func:`heads_return`)."""
         returns = heads_return(self.models[n], heads, self.probe(k).task, self.horizon, self.discount,
@@ -457,7 +461,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
             measures = component_errors(models[n], heads[k], probe, horizon)
             if heads[k] is not None:
                 own_return[(n, k)] = stages.planned_return(n, heads[k], k)
-                measures["return_own_heads"] = own_return[(n, k)] / _optimum(probe.task)
+                measures["return_own_heads"] = own_return[(n, k)] / stages.optimum(k)
             note = _rows_note(kind)
             rows += [dict(base, component=c, value=measures.get(c, math.nan), note="" if c in measures else note)
                      for c in COMPONENTS]
@@ -473,7 +477,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
             zero = true_reward.get((checkpoint.stage, task))
             swaps.append({"run": name, "method": cfg.method.name, "seed": cfg.train.seed,
                           "stage": checkpoint.stage, "stage_task": checkpoint.task, "task": task,
-                          "optimum": _optimum(probe.task), "saved": own_return[(k, k)], "moved": own_return[(n, k)],
+                          "optimum": stages.optimum(k), "saved": own_return[(k, k)], "moved": own_return[(n, k)],
                           "refit": float(np.mean(refits)),
                           "true_reward": "" if zero is None else float(zero["return"]),
                           "refit_updates": REFIT_UPDATES, "refit_min": min(refits), "refit_max": max(refits),

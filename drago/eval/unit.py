@@ -74,7 +74,7 @@ def unit_evaluations(cfg: Config) -> list[str]:
 #: an evaluation ``NAME@VERSION``, so a unit recorded with an earlier version is due again; a study then
 #: redoes only its record job (the evaluations are made again from the run's checkpoints), as long as the
 #: run directory is still there. components@2: the swap test's refit is the mean of several refits;
-#: components@3: each refit's learning rate decays over a longer budget, so that it settles.
+#: components@3: each refit's learning rate decays over a longer budget, so that more refits settle.
 EVALUATION_VERSIONS = {"components": 3}
 
 

@@ -129,7 +129,7 @@ def study_command(preset: str | None = None, methods: Sequence[str] | None = Non
         return StudyOutcome(True)
     if on_slurm:
         with continue_with("run the same `drago study` command again: it submits what is missing, never a "
-                            "job SLURM still has"):
+                           "job SLURM still has"):
             submission = submit_study(plan, options, echo=echo)
         if submission.report_error:
             return StudyOutcome(False, f"no report: {submission.report_error}")

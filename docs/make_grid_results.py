@@ -1,13 +1,16 @@
 """Regenerate the grid study's section of the results page from the committed records.
 
-    .venv/bin/python docs/make_grid_results.py [--records results/grid] [--preset minigrid-cpu]
+    .venv/bin/python docs/make_grid_results.py [--records results/grid] [--reviewer-records results/grid-reviewer]
+        [--dense-records results/grid-dense] [--preset minigrid-cpu]
 
-Reads every record in the folder (``drago study --records results/grid``), writes the per-unit numbers the
-section shows into ``docs/data/grid_records_*.csv``, builds the report of the records into
-``docs/grid-report/`` (report.md and its figures), and rewrites the part of ``docs/results.md`` between the
-markers ``<!-- grid-records:start -->`` and ``<!-- grid-records:end -->``: what is recorded and what is left,
-and the paper's claims, each with its verdict from the records with 95% CIs, or the seeds it still waits for.
-Nothing else is read: no run directories, no checkpoints. The same records give the same files.
+Reads every record of the main study (``drago study --records results/grid``) and of its two side studies
+where they have records (does the reviewer regain anything: ``drago-no-rehearsal`` paid against a lowered θ;
+transfer that can learn: the transfer cases with dense reward), writes the per-unit numbers the section shows
+into ``docs/data/grid_*records_*.csv``, builds the reports of the records into ``docs/grid-report/`` and
+``docs/grid-dense-report/`` (report.md and its figures), and rewrites the part of ``docs/results.md`` between
+the markers ``<!-- grid-records:start -->`` and ``<!-- grid-records:end -->``: what is recorded and what is
+left, and the paper's claims, each with its verdict from the records with 95% CIs, or the seeds it still waits
+for. Nothing else is read: no run directories, no checkpoints. The same records give the same files.
 """
 
 from __future__ import annotations
@@ -61,12 +64,20 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
         summary = json.loads(files["summary.json"])
         coverage = _csv(files.get("coverage.csv", ""))
         zero = _csv(files.get("zero_shot.csv", ""))
-        transfers = {}
+        transfers = {}  # case -> reading -> fraction of the test task's optimum
         for name, text in files.items():
             if name.startswith("transfer/") and name.endswith("/summary.json") and name.count("/") == 2:
+                case = name.split("/")[1]
                 block = json.loads(text).get("transfer") or {}
-                point = (block.get("few_shot") or {}).get("equal_episodes") or {}
-                transfers[name.split("/")[1]] = point.get("fraction_of_optimal")
+                few_shot = block.get("few_shot") or {}
+                curve = [float(r["fraction_of_optimal"]) for r in _csv(files.get(f"transfer/{case}/eval.csv", ""))
+                         if r.get("fraction_of_optimal") not in (None, "")]
+                transfers[case] = {"reward": block.get("reward"),
+                                   **{reading: (few_shot.get(reading) or {}).get("fraction_of_optimal")
+                                      for reading in TRANSFER_READINGS[:2]},
+                                   # the mean of the learning curve's evaluations: how fast it learned, not
+                                   # only where it stood at one episode
+                                   "curve_mean": float(np.mean(curve)) if curve else None}
         components = defaultdict(dict)  # (stage, task) -> component -> value
         stage_tasks = {}  # stage -> the task trained in it
         for r in _csv(files.get("components.csv", "")):
@@ -81,6 +92,7 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
         units.append({"path": path,
                       "method": record["unit"]["method"], "seed": record["unit"]["seed"],
                       "digest": record["protocol"]["digest"], "provenance": record["provenance"],
+                      "offset": float(record["protocol"]["run"].get("method.reviewer.threshold_offset") or 0.0),
                       "final": {t["name"]: t["fraction_of_optimal"] for t in summary["tasks"]},
                       "cpu_h": sum(float(t.get("cpu_time_s") or 0) for t in summary["tasks"]) / 3600,
                       "coverage": {(int(r["stage"]), r["room"]): float(r["accuracy"]) for r in coverage},
@@ -92,6 +104,11 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
     return units
 
 
+#: A transfer case's readings: the few-shot score at equal learner episodes and at equal env steps (the study's
+#: few-shot episodes), and the mean over its learning curve; each a fraction of the test task's optimum.
+TRANSFER_READINGS = ("equal_episodes", "equal_env_steps", "curve_mean")
+#: The grid's test tasks (the transfer cases' tasks) the zero-shot claim averages over.
+TEST_TASKS = ("room1to2", "room1to3", "room3to4")
 #: The swap test's returns (swap.csv), read as fractions of each task's DP optimum.
 SWAP_READINGS = ("saved", "moved", "refit", "true_reward")
 #: The rows of the "which part forgot" table: (source, key, what the row says).
@@ -114,25 +131,38 @@ WHAT = {
     "grid_records_coverage.csv": "world-model exact-match coverage per room after each stage",
     "grid_records_zero_shot.csv": "zero-shot return (retained model + true reward) per stage and task, as a "
                                   "fraction of the DP optimum",
-    "grid_records_transfers.csv": "few-shot return of each transfer case after 20 learner episodes, as a fraction "
-                                  "of the DP optimum",
+    "grid_records_transfers.csv": "each transfer case's few-shot return at equal learner episodes and at equal env "
+                                  "steps, and the mean over its learning curve, as fractions of the DP optimum",
     "grid_records_components.csv": "per-component retention (drago eval components) of every task seen after each "
                                    "stage",
     "grid_records_swap.csv": "the swap test of every earlier task after each stage, returns as fractions of the DP "
                              "optimum",
 }
+#: The side studies' data files, written once they have records.
+WHAT_REVIEWER = {"grid_reviewer_records_coverage.csv": "drago-no-rehearsal with its reviewer paid against a lowered "
+                                                       "θ: world-model exact-match coverage per room after each stage"}
+WHAT_DENSE = {"grid_dense_records_transfers.csv": "the transfer cases with dense reward: few-shot return at equal "
+                                                  "learner episodes and at equal env steps, and the mean over the "
+                                                  "learning curve, as fractions of the optimum"}
+#: The commands that make each study's records (run from the repository's root). Each study needs a folder of
+#: its own: one folder cannot hold two runs of a method and seed with different settings.
+STUDY = "drago study minigrid-cpu --seeds 1-3 --jobs 2 train.threads=1"
+MAIN_STUDY = f"{STUDY} --methods {' '.join(DEFAULT_METHODS)} --out runs/study/grid"
+REVIEWER_STUDY = (f"{STUDY} --methods drago-no-rehearsal method.reviewer.threshold_offset=3 "
+                  f"--out runs/study/grid-reviewer")
+DENSE_STUDY = (f"{STUDY} --methods drago continual replay scratch --transfer-reward dense --transfer-episodes 100 "
+               f"--out runs/study/grid-dense")
 
 
-def write_sources(units: list[dict], folder: Path) -> Path:
-    """The data files' entries in docs/data/sources.json: what, the command, and the records' dates, commits
-    and machines."""
+def write_sources(units: list[dict], folder: Path, what_of: dict[str, str], study: str) -> Path:
+    """The entries of ``what_of``'s data files in docs/data/sources.json: what, the commands, and the records'
+    dates, commits and machines."""
     path = _docs / "data" / "sources.json"
     sources = json.loads(path.read_text())
-    for name, what in WHAT.items():
+    for name, what in what_of.items():
         sources[name] = {
             "what": f"The grid study from its records: {what}, per method and seed",
-            "command": f".venv/bin/python docs/make_grid_results.py --records {folder} (from drago study --jobs 2 "
-                       f"--records {folder})",
+            "command": f".venv/bin/python docs/make_grid_results.py (records from {study} --records {folder})",
             "preset": "minigrid-cpu", "units": len(units),
             "date": sorted({u["provenance"]["recorded"][:10] for u in units}),
             "commit": sorted({str(u["provenance"]["commit"])[:7] for u in units}),
@@ -153,9 +183,7 @@ def write_data(units: list[dict]) -> list[Path]:
     rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "task": task, "fraction": frac}
             for u in units for (stage, task), frac in sorted(u["zero_shot"].items())]
     out.append(_write("grid_records_zero_shot.csv", rows, ("method", "seed", "stage", "task", "fraction")))
-    rows = [{"method": u["method"], "seed": u["seed"], "case": case, "fraction_equal_episodes": frac}
-            for u in units for case, frac in sorted(u["transfers"].items())]
-    out.append(_write("grid_records_transfers.csv", rows, ("method", "seed", "case", "fraction_equal_episodes")))
+    out.append(_write("grid_records_transfers.csv", _transfer_rows(units), TRANSFER_COLUMNS))
     rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "task": task, "component": name, "value": value}
             for u in units for (stage, task), values in sorted(u["components"].items())
             for name, value in values.items()]
@@ -163,6 +191,29 @@ def write_data(units: list[dict]) -> list[Path]:
     rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "task": task, **readings}
             for u in units for (stage, task), readings in sorted(u["swap"].items())]
     out.append(_write("grid_records_swap.csv", rows, ("method", "seed", "stage", "task", *SWAP_READINGS)))
+    return out
+
+
+TRANSFER_COLUMNS = ("method", "seed", "case", "reward", *TRANSFER_READINGS)
+
+
+def _transfer_rows(units: list[dict]) -> list[dict]:
+    return [{"method": u["method"], "seed": u["seed"], "case": case, **readings}
+            for u in units for case, readings in sorted(u["transfers"].items())]
+
+
+def write_side_data(reviewer_units: list[dict], dense_units: list[dict]) -> list[Path]:
+    """The data of the reviewer study (its coverage, with the offset of θ it paid against) and of the dense
+    transfers, each only once it has a record."""
+    out = []
+    if reviewer_units:
+        rows = [{"method": u["method"], "threshold_offset": u["offset"], "seed": u["seed"], "stage": stage,
+                 "room": room, "accuracy": acc}
+                for u in reviewer_units for (stage, room), acc in sorted(u["coverage"].items())]
+        out.append(_write("grid_reviewer_records_coverage.csv", rows,
+                          ("method", "threshold_offset", "seed", "stage", "room", "accuracy")))
+    if dense_units:
+        out.append(_write("grid_dense_records_transfers.csv", _transfer_rows(dense_units), TRANSFER_COLUMNS))
     return out
 
 
@@ -195,9 +246,7 @@ def _earlier_tasks_at_end(u: dict, source: str, key: str) -> float | None:
 def forgot_table(units: list[dict]) -> list[str]:
     """Which part forgot: each component's reading on the earlier tasks after the last stage, per method, mean
     over those tasks per seed, then mean ± std [95% CI] over seeds."""
-    by = defaultdict(list)
-    for u in units:
-        by[u["method"]].append(u)
+    by = _by_method(units)
     methods = [m for m in FORGOT_METHODS if by.get(m)] + sorted(set(by) - set(FORGOT_METHODS))
     if not methods:
         return []
@@ -210,80 +259,129 @@ def forgot_table(units: list[dict]) -> list[str]:
     return lines
 
 
-def verdicts(units: list[dict]) -> list[tuple[str, str, str]]:
+def _by_method(units: list[dict]) -> dict[str, list[dict]]:
     by = defaultdict(list)
     for u in units:
         by[u["method"]].append(u)
+    return by
+
+
+def _against(claim: str, method: str, mine: list[float], other: str, base: list[float],
+             wanted: int = len(DEFAULT_SEEDS)) -> tuple[str, str, str]:
+    """A claim that ``method`` scores higher than ``other``: confirmed only when the 95% CIs over seeds separate;
+    pending until each side has at least two seeds (one seed has no CI)."""
+    numbers = f"{method} {_fmt(mine)}; {other} {_fmt(base)}"
+    if len(mine) < 2 or len(base) < 2:
+        return claim, f"pending: {len(mine)} and {len(base)} of {wanted} seeds recorded", numbers
+    low, high = _ci(mine)
+    b_low, b_high = _ci(base)
+    verdict = ("confirmed (CIs separate)" if low > b_high else
+               "contradicted (CIs separate the other way)" if high < b_low else "not separated by the CIs")
+    if len(mine) < wanted or len(base) < wanted:
+        verdict += f" ({len(mine)} and {len(base)} of {wanted} seeds)"
+    return claim, verdict, numbers
+
+
+def _zero_shot_tests(u: dict) -> float | None:
+    """Mean zero-shot return on the test tasks after the fourth task."""
+    values = [u["zero_shot"].get((4, t)) for t in TEST_TASKS]
+    return None if None in values else float(np.mean(values))
+
+
+def _transfer_mean(u: dict, reading: str, reward: str) -> float | None:
+    """Mean over a unit's transfer cases with ``reward`` of one reading; None unless all four cases have it."""
+    values = [t.get(reading) for t in u["transfers"].values() if t.get("reward") == reward]
+    return float(np.mean(values)) if len(values) == 4 and None not in values else None
+
+
+def verdicts(units: list[dict], reviewer_units: list[dict] = (),
+             dense_units: list[dict] = ()) -> list[tuple[str, str, str]]:
+    """The paper's claims, each ``(claim, verdict, numbers)``: from the main study's ``units``, the reviewer
+    study's (``drago-no-rehearsal`` paid against a lowered θ) and the dense transfers'."""
+    by = _by_method(units)
     rows = []
-    # DRAGO learns every room
     for method in ("drago", "drago-no-rehearsal", "drago-no-reviewer"):
+        claim = f"`{method}` learns every room (≥ {LEARNED:.2f} of the optimum at each task's end)"
         mine = sorted(by.get(method, []), key=lambda u: u["seed"])
         if not mine:
-            rows.append((f"`{method}` learns every room (≥ {LEARNED:.2f} of the optimum at each task's end)",
-                         "pending: no seed recorded", ""))
+            rows.append((claim, "pending: no seed recorded", ""))
             continue
         fails = [f"seed {u['seed']} {task} {frac:.2f}" for u in mine for task, frac in u["final"].items()
                  if frac is not None and frac < LEARNED]
         shown = "; ".join(f"seed {u['seed']}: " + " / ".join(f"{u['final'].get(r, float('nan')):.2f}" for r in ROOMS)
                           for u in mine)
-        seeds = f"{len(mine)} of {len(DEFAULT_SEEDS)} seeds"
-        verdict = ("holds" if not fails else "fails: " + ", ".join(fails)) + f" ({seeds})"
-        rows.append((f"`{method}` learns every room (≥ {LEARNED:.2f} of the optimum at each task's end)", verdict,
-                     shown))
-    # retention against continual, and each ablation against continual
-    base = [v for v in (_old_rooms(u) for u in by.get("continual", [])) if v is not None]
+        seeds = f" ({len(mine)} of {len(DEFAULT_SEEDS)} seeds)"
+        verdict = ("holds" if not fails else "fails: " + ", ".join(fails)) + seeds
+        rows.append((claim, verdict, shown))
+
+    def values(pool: list[dict], reading) -> list[float]:
+        return [v for v in (reading(u) for u in pool) if v is not None]
+
+    base = values(by.get("continual", []), _old_rooms)
+    retained = " (coverage of rooms 1-3 after task 4)"
     for method, claim in (("drago", "DRAGO keeps rooms 1-3 after room 4 better than `continual`"),
                           ("drago-no-rehearsal", "the reviewer alone retains more than `continual`"),
                           ("drago-no-reviewer", "rehearsal alone retains more than `continual`")):
-        mine = [v for v in (_old_rooms(u) for u in by.get(method, [])) if v is not None]
-        if len(mine) < 2 or len(base) < 2:
-            rows.append((claim + " (coverage of rooms 1-3 after task 4)",
-                         f"pending: {len(mine)} and {len(base)} of {len(DEFAULT_SEEDS)} seeds recorded",
-                         f"{method} {_fmt(mine)}; continual {_fmt(base)}"))
-            continue
-        low, high = _ci(mine)
-        b_low, b_high = _ci(base)
-        verdict = ("confirmed (CIs separate)" if low > b_high else
-                   "contradicted (CIs separate the other way)" if high < b_low else "not separated by the CIs")
-        rows.append((claim + " (coverage of rooms 1-3 after task 4)", verdict,
-                     f"{method} {_fmt(mine)}; continual {_fmt(base)}"))
-    # zero-shot planning on the test tasks
-    tests = ("room1to2", "room1to3", "room3to4")
-
-    def zero(u: dict) -> float | None:
-        values = [u["zero_shot"].get((4, t)) for t in tests]
-        return None if None in values else float(np.mean(values))
-
-    mine = [v for v in (zero(u) for u in by.get("drago", [])) if v is not None]
-    base = [v for v in (zero(u) for u in by.get("continual", [])) if v is not None]
-    claim = "a retained DRAGO model plans the test tasks better than `continual`'s (zero-shot, after task 4)"
-    if len(mine) < 2 or len(base) < 2:
-        rows.append((claim, f"pending: {len(mine)} and {len(base)} of {len(DEFAULT_SEEDS)} seeds recorded",
-                     f"drago {_fmt(mine)}; continual {_fmt(base)}"))
-    else:
-        low, high = _ci(mine)
-        b_low, b_high = _ci(base)
-        verdict = ("confirmed (CIs separate)" if low > b_high else
-                   "contradicted (CIs separate the other way)" if high < b_low else "not separated by the CIs")
-        rows.append((claim, verdict, f"drago {_fmt(mine)}; continual {_fmt(base)}"))
+        rows.append(_against(claim + retained, method, values(by.get(method, []), _old_rooms), "continual", base))
+    offsets = sorted({u["offset"] for u in reviewer_units}) or [None]
+    for offset in offsets:
+        mine = [u for u in reviewer_units if u["method"] == "drago-no-rehearsal" and u["offset"] == offset]
+        paid = "a lowered θ" if offset is None else f"θ − {offset:g}"
+        rows.append(_against(f"the reviewer alone, paid against {paid}, retains more than `continual`" + retained,
+                             f"drago-no-rehearsal (θ − {offset:g})" if offset is not None else "drago-no-rehearsal",
+                             values(mine, _old_rooms), "continual", base))
+    rows.append(_against("a retained DRAGO model plans the test tasks better than `continual`'s (zero-shot, after "
+                         "task 4)", "drago", values(by.get("drago", []), _zero_shot_tests), "continual",
+                         values(by.get("continual", []), _zero_shot_tests)))
+    dense = _by_method(dense_units)
+    for reading, what in (("equal_episodes", "few-shot at equal learner episodes"),
+                          ("equal_env_steps", "few-shot at equal env steps"),
+                          ("curve_mean", "mean over the learning curve")):
+        rows.append(_against(f"a retained DRAGO model learns the test tasks faster than `continual`'s (dense "
+                             f"reward, {what}, mean of the four cases)", "drago",
+                             values(dense.get("drago", []), lambda u: _transfer_mean(u, reading, "dense")),
+                             "continual",
+                             values(dense.get("continual", []), lambda u: _transfer_mean(u, reading, "dense"))))
     return rows
 
 
-def section(units: list[dict], folder: Path) -> str:
-    planned = len(DEFAULT_METHODS) * len(DEFAULT_SEEDS)
-    recorded = sorted({(u["method"], u["seed"]) for u in units})
+def _recorded_line(units: list[dict], planned: int, what: str) -> str:
     digests = sorted({u["digest"] for u in units})
     cpus = sorted({u["provenance"]["cpu"] for u in units})
     commits = sorted({str(u["provenance"]["commit"])[:7] for u in units})
     dates = sorted(u["provenance"]["recorded"][:10] for u in units)
-    lines = [f"Generated by `.venv/bin/python docs/make_grid_results.py --records {folder}` from the committed "
-             f"records; data in `docs/data/grid_records_*.csv`, the full report of the records in "
-             f"[grid-report/report.md](grid-report/report.md).", "",
-             f"**{len(recorded)} of {planned} units recorded** (a unit: one `minigrid-cpu` run of a method and "
-             f"seed, its four transfer cases and every evaluation of its checkpoints), protocol "
-             f"{', '.join(digests) or '–'}, recorded {dates[0] if dates else '–'} to {dates[-1] if dates else '–'} "
-             f"on {'; '.join(cpus) or '–'} at commit {', '.join(commits) or '–'}. The study continues with "
-             f"`drago study --jobs 2 --records {folder}`; `--status` gives the units and CPU-hours left.", "",
+    when = (f", protocol {', '.join(digests)}, recorded {dates[0]} to {dates[-1]} on {'; '.join(cpus)} at commit "
+            f"{', '.join(commits)}") if units else ""
+    count = len({(u["method"], u["seed"], u["offset"]) for u in units})
+    return f"**{count} of {planned} units recorded** ({what}){when}."
+
+
+def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), reviewer_folder: Path | None = None,
+            dense_units: list[dict] = (), dense_folder: Path | None = None) -> str:
+    command = " ".join(["docs/make_grid_results.py --records", str(folder),
+                        *(["--reviewer-records", str(reviewer_folder)] if reviewer_folder else []),
+                        *(["--dense-records", str(dense_folder)] if dense_folder else [])])
+    lines = [f"Generated by `.venv/bin/python {command}` from the committed records; data in "
+             f"`docs/data/grid_*records_*.csv`, the full report of the records in "
+             f"[grid-report/report.md](grid-report/report.md)"
+             + (", the dense transfers' in [grid-dense-report/report.md](grid-dense-report/report.md)"
+                if dense_units else "") + ".", "",
+             "- **The main study**: " + _recorded_line(units, len(DEFAULT_METHODS) * len(DEFAULT_SEEDS),
+                                                       "a unit: one `minigrid-cpu` run of a method and seed, its "
+                                                       "four sparse transfer cases and every evaluation of its "
+                                                       "checkpoints")
+             + f" Made by `{MAIN_STUDY} --records {folder}`.",
+             "- **Does the reviewer regain anything?** " + _recorded_line(
+                 reviewer_units, len(DEFAULT_SEEDS), "`drago-no-rehearsal`, its reviewer paid against θ − 3")
+             + f" Made by `{REVIEWER_STUDY} --records {reviewer_folder or 'results/grid-reviewer'}`.",
+             "- **Transfer that can learn**: " + _recorded_line(
+                 dense_units, 4 * len(DEFAULT_SEEDS), "`drago`, `continual`, `replay` and `scratch`, the four "
+                 "transfer cases with dense reward and 100 learner episodes")
+             + f" Made by `{DENSE_STUDY} --records {dense_folder or 'results/grid-dense'}`.", "",
+             "Each study continues from its records on any machine with the same command; `--status` gives the "
+             "units and CPU-hours left. The dense transfers start from the main study's runs: copies of its "
+             "finished run directories without their `transfer/` folders, put in the dense study's `--out`, are "
+             "skipped as finished, so only the transfers run.", "",
              "| method | " + " | ".join(f"seed {s}" for s in DEFAULT_SEEDS) + " |",
              "|---|" + "---|" * len(DEFAULT_SEEDS)]
     for method in DEFAULT_METHODS:
@@ -297,7 +395,10 @@ def section(units: list[dict], folder: Path) -> str:
     lines += ["", "Each cell: the fraction of the DP optimum each room's task ended at, and the run's CPU hours "
               "(transfers and evaluations not included).", "",
               "| the paper's claim | verdict from the records | numbers (mean ± std [95% CI]) |", "|---|---|---|"]
-    lines += [f"| {claim} | {verdict} | {numbers} |" for claim, verdict, numbers in verdicts(units)]
+    lines += [f"| {claim} | {verdict} | {numbers} |"
+              for claim, verdict, numbers in verdicts(units, reviewer_units, dense_units)]
+    lines += ["", "A claim is confirmed only where the 95% CIs over seeds separate; the transfer rows average each "
+              "unit's four cases first."]
     forgot = forgot_table(units)
     if forgot:
         lines += ["", "**Which part forgot** ([how each part is measured](evaluation.md#which-part-forgot-grid)): "
@@ -309,9 +410,31 @@ def section(units: list[dict], folder: Path) -> str:
     return "\n".join(lines)
 
 
+def _build_report_into(target: Path, folders: list[Path]) -> None:
+    """report.md and its figures only: the site renders the Markdown page, and a report.html beside it would be
+    a second page of the same name."""
+    import shutil
+    import tempfile
+
+    from drago.report import build_report
+
+    shutil.rmtree(target, ignore_errors=True)
+    target.mkdir()
+    with tempfile.TemporaryDirectory() as scratch:
+        build_report(folders, scratch)
+        for path in sorted(Path(scratch).iterdir()):
+            if path.suffix in (".md", ".png"):
+                shutil.copy(path, target / path.name)
+                print(f"wrote {target / path.name}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--records", type=Path, default=Path("results/grid"))
+    parser.add_argument("--records", type=Path, default=Path("results/grid"), help="the main study's records")
+    parser.add_argument("--reviewer-records", type=Path, default=Path("results/grid-reviewer"),
+                        help="the records of drago-no-rehearsal paid against a lowered θ (left out if absent)")
+    parser.add_argument("--dense-records", type=Path, default=Path("results/grid-dense"),
+                        help="the records of the dense-reward transfers (left out if absent)")
     parser.add_argument("--preset", default="minigrid-cpu", help="the study's preset; records of others are left out")
     parser.add_argument("--docs", type=Path, default=DOCS, help="the docs folder to write into (default: this one)")
     args = parser.parse_args()
@@ -320,25 +443,24 @@ def main() -> int:
     os.chdir(ROOT)  # records are named by their path from the repository's root, on every machine
     folder = args.records
     units = load(folder, args.preset)
-    for path in [*write_data(units), write_sources(units, folder)]:
+    reviewer_folder = args.reviewer_records if args.reviewer_records.is_dir() else None
+    dense_folder = args.dense_records if args.dense_records.is_dir() else None
+    reviewer_units = load(reviewer_folder, args.preset) if reviewer_folder else []
+    dense_units = load(dense_folder, args.preset) if dense_folder else []
+    written = [*write_data(units), write_sources(units, folder, WHAT, MAIN_STUDY),
+               *write_side_data(reviewer_units, dense_units)]
+    if reviewer_units:
+        written.append(write_sources(reviewer_units, reviewer_folder, WHAT_REVIEWER, REVIEWER_STUDY))
+    if dense_units:
+        written.append(write_sources(dense_units, dense_folder, WHAT_DENSE, DENSE_STUDY))
+    for path in written:
         print(f"wrote {path}")
     if units:
-        import shutil
-        import tempfile
-
-        from drago.report import build_report
-
-        # report.md and its figures only: the site renders the Markdown page, and a report.html beside it would
-        # be a second page of the same name.
-        target = _docs / "grid-report"
-        shutil.rmtree(target, ignore_errors=True)
-        target.mkdir()
-        with tempfile.TemporaryDirectory() as scratch:
-            build_report([folder], scratch)
-            for path in sorted(Path(scratch).iterdir()):
-                if path.suffix in (".md", ".png"):
-                    shutil.copy(path, target / path.name)
-                    print(f"wrote {target / path.name}")
+        # the reviewer study's runs are other runs of one method, reported beside the main study's under their own
+        # label; the dense transfers hang off copies of the main study's runs, so they get a report of their own
+        _build_report_into(_docs / "grid-report", [folder, *([reviewer_folder] if reviewer_units else [])])
+    if dense_units:
+        _build_report_into(_docs / "grid-dense-report", [dense_folder])
     page = _docs / "results.md"
     text = page.read_text()
     if START not in text or END not in text:
@@ -346,7 +468,8 @@ def main() -> int:
         return 1
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
-    page.write_text(f"{head}{START}\n{section(units, folder)}\n{END}{tail}")
+    body = section(units, folder, reviewer_units, reviewer_folder, dense_units, dense_folder)
+    page.write_text(f"{head}{START}\n{body}\n{END}{tail}")
     print(f"wrote {page}")
     return 0
 

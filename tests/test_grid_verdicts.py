@@ -1,0 +1,74 @@
+"""The results page's verdicts on the paper's claims (docs/make_grid_results.py), on hand-made units: a claim is
+confirmed only where the 95% CIs over seeds separate, contradicted where they separate the other way, and
+pending until each side has two seeds."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+_PATH = Path(__file__).resolve().parents[1] / "docs" / "make_grid_results.py"
+_SPEC = importlib.util.spec_from_file_location("make_grid_results", _PATH)
+grid = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(grid)
+
+CASES = ("room1to2-after2", "room1to3-after3", "room1to3-after4", "room3to4-after4")
+
+
+def unit(method: str, seed: int, old_rooms: float, final: float = 0.97, offset: float = 0.0,
+         zero_shot: float = 0.0, transfer: float | None = None) -> dict:
+    """A unit whose rooms 1-3 are covered at ``old_rooms`` after task 4, every room ended at ``final`` of its
+    optimum, and (with ``transfer``) four dense transfer cases scoring ``transfer`` on every reading."""
+    readings = {} if transfer is None else {
+        case: {"reward": "dense", "equal_episodes": transfer, "equal_env_steps": transfer, "curve_mean": transfer}
+        for case in CASES}
+    return {"method": method, "seed": seed, "offset": offset,
+            "final": {room: final for room in grid.ROOMS},
+            "coverage": {(4, room): old_rooms for room in grid.ROOMS[:3]},
+            "zero_shot": {(4, task): zero_shot for task in grid.TEST_TASKS},
+            "transfers": readings}
+
+
+def row(rows: list[tuple[str, str, str]], starts: str) -> tuple[str, str, str]:
+    return next(r for r in rows if r[0].startswith(starts))
+
+
+def test_retention_is_confirmed_only_when_the_cis_separate():
+    continual = [unit("continual", s, v) for s, v in zip((1, 2, 3), (0.10, 0.12, 0.14))]
+    separate = [unit("drago", s, v) for s, v in zip((1, 2, 3), (0.86, 0.88, 0.90))]
+    overlapping = [unit("drago-no-rehearsal", s, v) for s, v in zip((1, 2, 3), (0.05, 0.30, 0.13))]
+    below = [unit("drago-no-reviewer", s, v) for s, v in zip((1, 2, 3), (0.01, 0.02, 0.03))]
+    rows = grid.verdicts(continual + separate + overlapping + below)
+    assert row(rows, "DRAGO keeps rooms 1-3")[1] == "confirmed (CIs separate)"
+    assert row(rows, "the reviewer alone retains")[1] == "not separated by the CIs"
+    assert row(rows, "rehearsal alone retains")[1] == "contradicted (CIs separate the other way)"
+    assert "drago 0.88 ± 0.02" in row(rows, "DRAGO keeps rooms 1-3")[2]
+
+
+def test_one_seed_is_pending_and_a_failed_room_is_named():
+    rows = grid.verdicts([unit("continual", 1, 0.1), unit("drago", 1, 0.9), unit("drago", 2, 0.9, final=0.5)])
+    assert row(rows, "DRAGO keeps rooms 1-3")[1] == "pending: 2 and 1 of 3 seeds recorded"
+    learns = row(rows, "`drago` learns every room")[1]
+    assert learns.startswith("fails: seed 2 room1 0.50") and learns.endswith("(2 of 3 seeds)")
+    assert row(rows, "`drago-no-reviewer` learns every room")[1] == "pending: no seed recorded"
+
+
+def test_the_reviewer_study_and_the_dense_transfers_are_judged_against_continual():
+    main = [unit("continual", s, 0.1 + 0.01 * s) for s in (1, 2, 3)]
+    reviewer = [unit("drago-no-rehearsal", s, 0.5 + 0.01 * s, offset=3.0) for s in (1, 2, 3)]
+    dense = ([unit("drago", s, 0.9, transfer=0.6 + 0.01 * s) for s in (1, 2)]
+             + [unit("continual", s, 0.1, transfer=0.6 + 0.02 * s) for s in (1, 2, 3)])
+    rows = grid.verdicts(main, reviewer, dense)
+    paid = row(rows, "the reviewer alone, paid against θ − 3,")
+    assert paid[1] == "confirmed (CIs separate)" and paid[2].startswith("drago-no-rehearsal (θ − 3) 0.52")
+    for reading in ("few-shot at equal learner episodes", "few-shot at equal env steps", "mean over the learning"):
+        claim, verdict, _ = next(r for r in rows if reading in r[0])
+        assert "dense reward" in claim and verdict == "not separated by the CIs (2 and 3 of 3 seeds)"
+
+
+def test_a_unit_without_all_four_dense_cases_is_left_out_of_the_transfer_claims():
+    partial = unit("drago", 1, 0.9, transfer=0.7)
+    del partial["transfers"][CASES[0]]
+    rows = grid.verdicts([], [], [partial, unit("drago", 2, 0.9, transfer=0.7), unit("continual", 1, 0.1, transfer=0.1),
+                                  unit("continual", 2, 0.1, transfer=0.1)])
+    assert row(rows, "a retained DRAGO model learns")[1] == "pending: 1 and 2 of 3 seeds recorded"

@@ -148,7 +148,8 @@ WHAT_DENSE = {"grid_dense_records_transfers.csv": "the transfer cases with dense
 #: its own: one folder cannot hold two runs of a method and seed with different settings.
 STUDY = "drago study minigrid-cpu --seeds 1-3 --jobs 2 train.threads=1"
 MAIN_STUDY = f"{STUDY} --methods {' '.join(DEFAULT_METHODS)} --out runs/study/grid"
-REVIEWER_STUDY = (f"{STUDY} --methods drago-no-rehearsal method.reviewer.threshold_offset=3 "
+# the reviewer study asks what the reviewer keeps, so its units are runs without transfer cases
+REVIEWER_STUDY = (f"{STUDY} --methods drago-no-rehearsal method.reviewer.threshold_offset=3 --no-transfer "
                   f"--out runs/study/grid-reviewer")
 DENSE_STUDY = (f"{STUDY} --methods drago continual replay scratch --transfer-reward dense --transfer-episodes 100 "
                f"--out runs/study/grid-dense")
@@ -372,7 +373,8 @@ def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), re
                                                        "checkpoints")
              + f" Made by `{MAIN_STUDY} --records {folder}`.",
              "- **Does the reviewer regain anything?** " + _recorded_line(
-                 reviewer_units, len(DEFAULT_SEEDS), "`drago-no-rehearsal`, its reviewer paid against θ − 3")
+                 reviewer_units, len(DEFAULT_SEEDS), "`drago-no-rehearsal`, its reviewer paid against θ − 3; runs and "
+                 "their evaluations, no transfer cases")
              + f" Made by `{REVIEWER_STUDY} --records {reviewer_folder or 'results/grid-reviewer'}`.",
              "- **Transfer that can learn**: " + _recorded_line(
                  dense_units, 4 * len(DEFAULT_SEEDS), "`drago`, `continual`, `replay` and `scratch`, the four "

@@ -39,9 +39,10 @@ b -> c what a cheap head refit recovers (that knowledge was still in the model),
 model's own forgetting.
 
 **The refit** re-attaches the heads saved after k and trains them with the agent's own update (paper §2's
-losses and optimizers) for :data:`REFIT_UPDATES` updates of H-step sequences that start on probe states and
+losses and optimizers) for a tenth of a task's learner steps in updates, at most :data:`REFIT_UPDATES` (so a
+tenth of the updates of one task of ``minigrid-cpu``), of H-step sequences that start on probe states and
 follow uniformly random actions through the true dynamics, paid the task's true reward: a fixed budget, the
-same for every method, a tenth of the updates of one task of ``minigrid-cpu``. Its learning rate decays
+same for every method of a preset, and short beside what the heads were trained with. Its learning rate decays
 linearly from the agent's to :data:`REFIT_LR_DECAY` of it over those updates, so that it reads where heads
 trained through the model settle rather than where a short refit at a constant learning rate happens to stop.
 It settles in more cases than the short refit, not in all (``benchmarks/refit_budget.py`` compares budgets;
@@ -108,7 +109,8 @@ SWAP_FILE = "swap.csv"
 COMPONENT_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "component", "value", "note")
 SWAP_COLUMNS = ("run", "method", "seed", "stage", "stage_task", "task", "optimum", "saved", "moved", "refit",
                 "true_reward", "refit_updates", "refit_min", "refit_max", "refit_draws")
-#: Head updates of the swap test's refit (see the module docstring).
+#: The most head updates of the swap test's refit; a run with shorter tasks gets a tenth of a task's learner steps
+#: (see the module docstring).
 REFIT_UPDATES = 1000
 #: The refit's learning rate at its last update, as a fraction of the agent's (see the module docstring).
 REFIT_LR_DECAY = 0.01
@@ -392,6 +394,12 @@ class RunStages:
     def probe(self, k: int) -> GridProbe:
         return grid_probe(self.checkpoints[k].task, self.discount, self.cfg.env.dense_reward)
 
+    @property
+    def refit_updates(self) -> int:
+        """The swap test's refit budget for this run: a tenth of a task's learner steps, at most REFIT_UPDATES."""
+        learner_steps = self.cfg.train.learner_steps_per_task or self.cfg.train.steps_per_task
+        return max(1, min(REFIT_UPDATES, int(learner_steps) // 10))
+
     def optimum(self, k: int) -> float:
         """Task k's DP-optimal return (the denominator of every fraction of the swap test)."""
         return _optimum(self.probe(k).task)
@@ -472,7 +480,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
                 continue
             probe = stages.probe(k)
             refits = [stages.planned_return(n, refit_heads(models[n], heads[k], probe, stages.agent_configs[n],
-                                                           seed=seed), k)
+                                                           updates=stages.refit_updates, seed=seed), k)
                       for seed in stages.refit_seeds()]
             zero = true_reward.get((checkpoint.stage, task))
             swaps.append({"run": name, "method": cfg.method.name, "seed": cfg.train.seed,
@@ -480,7 +488,7 @@ def components_of_run(run_dir: str | Path, zero_shot_rows: Sequence[dict[str, An
                           "optimum": stages.optimum(k), "saved": own_return[(k, k)], "moved": own_return[(n, k)],
                           "refit": float(np.mean(refits)),
                           "true_reward": "" if zero is None else float(zero["return"]),
-                          "refit_updates": REFIT_UPDATES, "refit_min": min(refits), "refit_max": max(refits),
+                          "refit_updates": stages.refit_updates, "refit_min": min(refits), "refit_max": max(refits),
                           "refit_draws": len(refits)})
     return rows, swaps
 

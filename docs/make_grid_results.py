@@ -109,6 +109,8 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
 TRANSFER_READINGS = ("equal_episodes", "equal_env_steps", "curve_mean")
 #: The grid's test tasks (the transfer cases' tasks) the zero-shot claim averages over.
 TEST_TASKS = ("room1to2", "room1to3", "room3to4")
+#: The screenshot of the records' report, drawn in a fresh clone (docs/make_report_screenshots.py).
+SCREENSHOT = "report-records-top.png"
 #: The swap test's returns (swap.csv), read as fractions of each task's DP optimum.
 SWAP_READINGS = ("saved", "moved", "refit", "true_reward")
 #: The rows of the "which part forgot" table: (source, key, what the row says).
@@ -401,6 +403,12 @@ def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), re
               for claim, verdict, numbers in verdicts(units, reviewer_units, dense_units)]
     lines += ["", "A claim is confirmed only where the 95% CIs over seeds separate; the transfer rows average each "
               "unit's four cases first."]
+    if (_docs / SCREENSHOT).is_file():
+        lines += ["", f"The top of the report of the main study's records as a new user gets it: drawn by "
+                  f"`.venv/bin/python docs/make_report_screenshots.py --in-fresh-clone --only {SCREENSHOT}`, which "
+                  f"clones the repository, sets the clone up with `scripts/setup.sh` and builds the report there from "
+                  f"the committed records alone:", "",
+                  f"![The top of the report of the grid study's records, built in a fresh clone]({SCREENSHOT})"]
     forgot = forgot_table(units)
     if forgot:
         lines += ["", "**Which part forgot** ([how each part is measured](evaluation.md#which-part-forgot-grid)): "

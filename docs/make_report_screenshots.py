@@ -5,10 +5,13 @@ page (the page's own styles, tables and figures, nothing redrawn), renders each 
 Chromium and crops the blank margin below it:
 
     .venv/bin/python docs/make_report_screenshots.py --records results/grid [--methods drago continual ...]
+        [--only NAME ...] [--in-fresh-clone]
 
 writes ``docs/report-records-top.png`` (the report's top: its runs and final returns) and
 ``docs/report-records-components.png`` (which part forgot, task × stage; the swap test; what each method stores and
-spends).
+spends); ``--only NAME ...`` writes only those. With ``--in-fresh-clone`` it first clones the repository's
+committed state into a temporary folder, sets it up there with ``scripts/setup.sh`` and draws from that
+clone's records: the report a new user gets from the committed records alone, nothing of this working tree.
 Needs ``chromium`` on the PATH (``scripts/setup.sh`` installs Debian's package).
 """
 
@@ -64,6 +67,24 @@ def screenshot(page: Path, out: Path, browser: str, profile: Path) -> None:
     print(f"wrote {out} ({box[2] - box[0]}x{box[3]})")
 
 
+def in_fresh_clone(args: argparse.Namespace) -> int:
+    """This script, run in a fresh clone of the repository's committed state, writing into ``args.out``."""
+    root = DOCS.parent
+    try:
+        records = args.records.resolve().relative_to(root)
+    except ValueError:
+        raise SystemExit(f"--in-fresh-clone draws committed records: {args.records} is outside the repository")
+    with tempfile.TemporaryDirectory() as tmp:
+        clone = Path(tmp) / "drago"
+        subprocess.run(["git", "clone", "--quiet", str(root), str(clone)], check=True)
+        subprocess.run(["bash", "scripts/setup.sh"], cwd=clone, check=True)
+        argv = [".venv/bin/python", "docs/make_report_screenshots.py", "--records", str(records),
+                "--out", str(args.out.resolve()), "--only", *args.only]
+        if args.methods:
+            argv += ["--methods", *args.methods]
+        return subprocess.run(argv, cwd=clone).returncode
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=Path, default=DOCS.parent / "results" / "grid",
@@ -71,7 +92,13 @@ def main() -> int:
     parser.add_argument("--methods", nargs="+", default=None,
                         help="only these methods' records (RECORDS/METHOD), in this order (default: all)")
     parser.add_argument("--out", type=Path, default=DOCS, help="folder of the screenshots (default docs/)")
+    parser.add_argument("--only", nargs="+", choices=sorted(SHOTS), default=sorted(SHOTS), metavar="NAME",
+                        help=f"write only these screenshots (default all: {', '.join(sorted(SHOTS))})")
+    parser.add_argument("--in-fresh-clone", action="store_true",
+                        help="clone the repository's committed state, set it up and draw from the clone's records")
     args = parser.parse_args()
+    if args.in_fresh_clone:
+        return in_fresh_clone(args)
     sources = [args.records] if args.methods is None else [args.records / method for method in args.methods]
     missing = [str(source) for source in sources if not source.is_dir()]
     if missing:
@@ -84,7 +111,8 @@ def main() -> int:
         subprocess.run([sys.executable, "-m", "drago", "report", *map(str, sources), "--out", str(folder / "report")],
                        check=True, stdout=subprocess.DEVNULL)
         html = (folder / "report" / "report.html").read_text(encoding="utf-8")
-        for name, (ids, with_title) in SHOTS.items():
+        for name in args.only:
+            ids, with_title = SHOTS[name]
             page = folder / f"{Path(name).stem}.html"
             page.write_text(sections_page(html, ids, with_title), encoding="utf-8")
             screenshot(page, args.out / name, browser, folder / "profile")

@@ -317,3 +317,10 @@ def test_the_report_screenshots_show_the_records_sections(recorded, tmp_path):
         assert 600 < width < 2000 and 200 < height < 6000, (name, image.shape)
         assert (image < 128).mean() > 0.005  # text and figures drawn, not a blank page
         assert (image[-10:] > 250).all()  # cropped below the last section, not cut through it
+    only = tmp_path / "only"
+    only.mkdir()
+    done = subprocess.run([sys.executable, str(root / "docs" / "make_report_screenshots.py"), "--records", str(records),
+                           "--out", str(only), "--only", "report-records-top.png"], capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert sorted(p.name for p in only.iterdir()) == ["report-records-top.png"]

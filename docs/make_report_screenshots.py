@@ -97,6 +97,7 @@ def main() -> int:
     parser.add_argument("--in-fresh-clone", action="store_true",
                         help="clone the repository's committed state, set it up and draw from the clone's records")
     args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
     if args.in_fresh_clone:
         return in_fresh_clone(args)
     sources = [args.records] if args.methods is None else [args.records / method for method in args.methods]

@@ -89,7 +89,10 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
             optimum = float(r["optimum"])
             swap[(int(r["stage"]), r["task"])] = {column: float(r[column]) / optimum
                                                  for column in SWAP_READINGS if r.get(column) not in (None, "")}
+        costs = _csv(files.get("costs.csv", ""))
         units.append({"path": path,
+                      "env_steps": (sum(int(r["learner_env_steps"]) for r in costs),
+                                    sum(int(r["reviewer_env_steps"]) for r in costs)) if costs else None,
                       "method": record["unit"]["method"], "seed": record["unit"]["seed"],
                       "digest": record["protocol"]["digest"], "provenance": record["provenance"],
                       "offset": float(record["protocol"]["run"].get("method.reviewer.threshold_offset") or 0.0),
@@ -386,18 +389,21 @@ def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), re
              "units and CPU-hours left. The dense transfers start from the main study's runs: copies of its "
              "finished run directories without their `transfer/` folders, put in the dense study's `--out`, are "
              "skipped as finished, so only the transfers run.", "",
-             "| method | " + " | ".join(f"seed {s}" for s in DEFAULT_SEEDS) + " |",
-             "|---|" + "---|" * len(DEFAULT_SEEDS)]
+             "| method | env steps of a run: learner + reviewer | " + " | ".join(f"seed {s}" for s in DEFAULT_SEEDS)
+             + " |", "|---|---|" + "---|" * len(DEFAULT_SEEDS)]
     for method in DEFAULT_METHODS:
-        cells = []
+        budgets = sorted({u["env_steps"] for u in units if u["method"] == method and u["env_steps"]})
+        cells = [" or ".join(f"{learner:,} + {reviewer:,}" for learner, reviewer in budgets) or "–"]
         for seed in DEFAULT_SEEDS:
             u = next((u for u in units if (u["method"], u["seed"]) == (method, seed)), None)
             cells.append("to do" if u is None else
                          "rooms " + " / ".join(f"{u['final'].get(r, float('nan')):.2f}" for r in ROOMS)
                          + f", {u['cpu_h']:.2f} CPU-h")
         lines.append(f"| `{method}` | " + " | ".join(cells) + " |")
-    lines += ["", "Each cell: the fraction of the DP optimum each room's task ended at, and the run's CPU hours "
-              "(transfers and evaluations not included).", "",
+    lines += ["", "Each seed's cell: the fraction of the DP optimum each room's task ended at, and the run's CPU hours "
+              "(transfers and evaluations not included). The env steps are the run's four tasks together "
+              "(`costs.csv` of its record): every learner has the same budget, and DRAGO's reviewer collects its "
+              "own on tasks 2-4.", "",
               "| the paper's claim | verdict from the records | numbers (mean ± std [95% CI]) |", "|---|---|---|"]
     lines += [f"| {claim} | {verdict} | {numbers} |"
               for claim, verdict, numbers in verdicts(units, reviewer_units, dense_units)]

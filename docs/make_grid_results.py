@@ -281,11 +281,13 @@ def _against(claim: str, method: str, mine: list[float], other: str, base: list[
         return claim, f"pending: {len(mine)} and {len(base)} of {wanted} seeds recorded", numbers
     low, high = _ci(mine)
     b_low, b_high = _ci(base)
-    verdict = ("confirmed (CIs separate)" if low > b_high else
-               "contradicted (CIs separate the other way)" if high < b_low else "not separated by the CIs")
-    if len(mine) < wanted or len(base) < wanted:
-        verdict += f" ({len(mine)} and {len(base)} of {wanted} seeds)"
-    return claim, verdict, numbers
+    verdict, why = (("confirmed", "CIs separate") if low > b_high else
+                    ("contradicted", "CIs separate the other way") if high < b_low else
+                    ("not separated by the CIs", ""))
+    if len(mine) < wanted or len(base) < wanted:  # a bootstrap CI over two seeds is their range: say it is early
+        why = "; ".join(filter(None, (why, f"{len(mine)} and {len(base)} of {wanted} seeds")))
+        verdict += " so far"
+    return claim, f"{verdict} ({why})" if why else verdict, numbers
 
 
 def _zero_shot_tests(u: dict) -> float | None:

@@ -104,6 +104,12 @@ def test_runs_of_a_method_with_other_settings_are_reported_apart(tmp_path):
         "drago-no-rehearsal [train.reviewer_steps_per_task=5000, method.reviewer.threshold_offset=0.0]": 2,
         "drago-no-rehearsal [train.reviewer_steps_per_task=5000, method.reviewer.threshold_offset=3.0]": 2,
         "drago-no-rehearsal [train.reviewer_steps_per_task=null, method.reviewer.threshold_offset=0.0]": 1}
+    # A setting the method does not act on splits nothing: without a reviewer both schedule clocks count alike.
+    clocks = [ReportedRun(path=tmp_path / f"clock-{clock}", summary=None, eval_rows=[],
+                          cfg=load_config("minigrid-cpu", [f"agent.schedule_clock={clock}"], method=method, seed=1))
+              for method in ("continual", "drago") for clock in ("task", "learner")]
+    assert {label: len(members) for label, members in label_runs(clocks).items()} == {
+        "continual": 2, "drago [agent.schedule_clock=task]": 1, "drago [agent.schedule_clock=learner]": 1}
     # Transfers of one method and setting stay one group across cases and budgets (each case is its own).
     cases = [transfer(tmp_path, "smoke", "drago", 1, "room1to2", 2), transfer(tmp_path, "smoke", "drago", 1, "room1to3", 3)]
     cases[1].cfg.train.learner_steps_per_task = 4000

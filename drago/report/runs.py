@@ -15,7 +15,7 @@ from typing import Any
 from drago.config import Config
 from drago.envs import get_domain, is_domain
 from drago.envs.tasks import GRID_TASKS
-from drago.training.records import RECORD_SUFFIX, find_records, materialize, read_record
+from drago.training.records import RECORD_SUFFIX, find_records, idle_settings, materialize, read_record
 from drago.training.rundir import (CONFIG_FILE, RESOLVED_AT_START, TRANSFER_FOLDER, RunDirError, flat_settings,
                                    read_run_config, read_summary)
 
@@ -213,11 +213,13 @@ BUDGET_SETTINGS = ("train.steps_per_task", "train.learner_steps_per_task", "trai
 
 def _variant_settings(run: ReportedRun) -> dict[str, Any]:
     """The settings that make a run of a method another variant of it: the method's and the agent's own, and a
-    continual run's budget; not those a run resolves for its machine (precision, compile)."""
+    continual run's budget; not those a run resolves for its machine (precision, compile), nor those it does not
+    read or that change nothing for it (a clock of the reviewer's schedules for a method without a reviewer)."""
     flat = flat_settings(run.cfg)
+    idle = idle_settings(run.cfg)
     return {key: value for key, value in flat.items()
             if (key.startswith(("method.", "agent.")) or (key in BUDGET_SETTINGS and not run.is_transfer))
-            and key not in RESOLVED_AT_START and key != "agent.kind"}
+            and key not in RESOLVED_AT_START and key != "agent.kind" and key not in idle}
 
 
 def _setting_text(key: str, value: Any) -> str:

@@ -78,11 +78,17 @@ class RecordError(RunDirError):
 
 # ---- protocol --------------------------------------------------------------------------------------
 def _protocol_settings(cfg: Config) -> dict[str, Any]:
-    idle = (*settings_without_effect(cfg), *inapplicable_settings(cfg))
+    idle = idle_settings(cfg)
     settings = {key: value for key, value in flat_settings(cfg).items() if key not in NOT_PROTOCOL and key not in idle}
     # Settings that were added after records existed and whose default changes nothing are left out at that
     # default, so the records made before them keep their protocol.
     return {key: value for key, value in settings.items() if NEUTRAL.get(key, object()) != value}
+
+
+def idle_settings(cfg: Config) -> frozenset[str]:
+    """The settings of ``cfg`` that its run does not read or that cannot change its results: not part of its
+    protocol, and two runs of a method that differ only in them are runs of one variant (the report's groups)."""
+    return frozenset((*settings_without_effect(cfg), *inapplicable_settings(cfg)))
 
 
 def settings_without_effect(cfg: Config) -> tuple[str, ...]:

@@ -39,8 +39,8 @@ b -> c what a cheap head refit recovers (that knowledge was still in the model),
 model's own forgetting.
 
 **The refit** re-attaches the heads saved after k and trains them with the agent's own update (paper §2's
-losses and optimizers) for a tenth of a task's learner steps in updates, at most :data:`REFIT_UPDATES` (so a
-tenth of the updates of one task of ``minigrid-cpu``), of H-step sequences that start on probe states and
+losses and optimizers) for a tenth of a task's learner steps in updates, at most :data:`REFIT_UPDATES` (on
+``minigrid-cpu`` about a tenth of the updates one task trains its heads with), of H-step sequences that start on probe states and
 follow uniformly random actions through the true dynamics, paid the task's true reward: a fixed budget, the
 same for every method of a preset, and short beside what the heads were trained with. Its learning rate decays
 linearly from the agent's to :data:`REFIT_LR_DECAY` of it over those updates, so that it reads where heads

@@ -90,12 +90,13 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
             swap[(int(r["stage"]), r["task"])] = {column: float(r[column]) / optimum
                                                  for column in SWAP_READINGS if r.get(column) not in (None, "")}
         costs = _csv(files.get("costs.csv", ""))
+        settings = record["protocol"]["run"]
         units.append({"path": path,
                       "env_steps": (sum(int(r["learner_env_steps"]) for r in costs),
                                     sum(int(r["reviewer_env_steps"]) for r in costs)) if costs else None,
                       "method": record["unit"]["method"], "seed": record["unit"]["seed"],
                       "digest": record["protocol"]["digest"], "provenance": record["provenance"],
-                      "offset": float(record["protocol"]["run"].get("method.reviewer.threshold_offset") or 0.0),
+                      "threshold_offset": float(settings.get("method.reviewer.threshold_offset") or 0.0),
                       "final": {t["name"]: t["fraction_of_optimal"] for t in summary["tasks"]},
                       "cpu_h": sum(float(t.get("cpu_time_s") or 0) for t in summary["tasks"]) / 3600,
                       "coverage": {(int(r["stage"]), r["room"]): float(r["accuracy"]) for r in coverage},
@@ -183,9 +184,7 @@ def write_data(units: list[dict]) -> list[Path]:
     rows = [{"method": u["method"], "seed": u["seed"], "task": task, "fraction_of_optimal": frac}
             for u in units for task, frac in u["final"].items()]
     out.append(_write("grid_records_final.csv", rows, ("method", "seed", "task", "fraction_of_optimal")))
-    rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "room": room, "accuracy": acc}
-            for u in units for (stage, room), acc in sorted(u["coverage"].items())]
-    out.append(_write("grid_records_coverage.csv", rows, ("method", "seed", "stage", "room", "accuracy")))
+    out.append(_write("grid_records_coverage.csv", *_coverage_rows(units, ("method", "seed"))))
     rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "task": task, "fraction": frac}
             for u in units for (stage, task), frac in sorted(u["zero_shot"].items())]
     out.append(_write("grid_records_zero_shot.csv", rows, ("method", "seed", "stage", "task", "fraction")))
@@ -213,14 +212,18 @@ def write_side_data(reviewer_units: list[dict], dense_units: list[dict]) -> list
     transfers, each only once it has a record."""
     out = []
     if reviewer_units:
-        rows = [{"method": u["method"], "threshold_offset": u["offset"], "seed": u["seed"], "stage": stage,
-                 "room": room, "accuracy": acc}
-                for u in reviewer_units for (stage, room), acc in sorted(u["coverage"].items())]
-        out.append(_write("grid_reviewer_records_coverage.csv", rows,
-                          ("method", "threshold_offset", "seed", "stage", "room", "accuracy")))
+        out.append(_write("grid_reviewer_records_coverage.csv",
+                          *_coverage_rows(reviewer_units, ("method", "threshold_offset", "seed"))))
     if dense_units:
         out.append(_write("grid_dense_records_transfers.csv", _transfer_rows(dense_units), TRANSFER_COLUMNS))
     return out
+
+
+def _coverage_rows(units: list[dict], keys: tuple[str, ...]) -> tuple[list[dict], tuple[str, ...]]:
+    """Each unit's coverage per stage and room, after the unit's ``keys``: (rows, columns)."""
+    rows = [{**{key: u[key] for key in keys}, "stage": stage, "room": room, "accuracy": acc}
+            for u in units for (stage, room), acc in sorted(u["coverage"].items())]
+    return rows, (*keys, "stage", "room", "accuracy")
 
 
 def _write(name: str, rows: list[dict], columns: tuple[str, ...]) -> Path:
@@ -331,9 +334,9 @@ def verdicts(units: list[dict], reviewer_units: list[dict] = (),
                           ("drago-no-rehearsal", "the reviewer alone retains more than `continual`"),
                           ("drago-no-reviewer", "rehearsal alone retains more than `continual`")):
         rows.append(_against(claim + retained, method, values(by.get(method, []), _old_rooms), "continual", base))
-    offsets = sorted({u["offset"] for u in reviewer_units}) or [None]
+    offsets = sorted({u["threshold_offset"] for u in reviewer_units}) or [None]
     for offset in offsets:
-        mine = [u for u in reviewer_units if u["method"] == "drago-no-rehearsal" and u["offset"] == offset]
+        mine = [u for u in reviewer_units if u["method"] == "drago-no-rehearsal" and u["threshold_offset"] == offset]
         paid = "a lowered θ" if offset is None else f"θ − {offset:g}"
         rows.append(_against(f"the reviewer alone, paid against {paid}, retains more than `continual`" + retained,
                              f"drago-no-rehearsal (θ − {offset:g})" if offset is not None else "drago-no-rehearsal",
@@ -360,7 +363,7 @@ def _recorded_line(units: list[dict], planned: int, what: str) -> str:
     dates = sorted(u["provenance"]["recorded"][:10] for u in units)
     when = (f", protocol {', '.join(digests)}, recorded {dates[0]} to {dates[-1]} on {'; '.join(cpus)} at commit "
             f"{', '.join(commits)}") if units else ""
-    count = len({(u["method"], u["seed"], u["offset"]) for u in units})
+    count = len({(u["method"], u["seed"], u["threshold_offset"]) for u in units})
     return f"**{count} of {planned} units recorded** ({what}){when}."
 
 

@@ -22,7 +22,7 @@ def unit(method: str, seed: int, old_rooms: float, final: float = 0.97, offset: 
     readings = {} if transfer is None else {
         case: {"reward": "dense", "equal_episodes": transfer, "equal_env_steps": transfer, "curve_mean": transfer}
         for case in CASES}
-    return {"method": method, "seed": seed, "offset": offset,
+    return {"method": method, "seed": seed, "threshold_offset": offset,
             "final": {room: final for room in grid.ROOMS},
             "coverage": {(4, room): old_rooms for room in grid.ROOMS[:3]},
             "zero_shot": {(4, task): zero_shot for task in grid.TEST_TASKS},

@@ -40,14 +40,14 @@ model's own forgetting.
 
 **The refit** re-attaches the heads saved after k and trains them with the agent's own update (paper §2's
 losses and optimizers) for a tenth of a task's learner steps in updates, at most :data:`REFIT_UPDATES` (on
-``minigrid-cpu`` about a tenth of the updates one task trains its heads with), of H-step sequences that start on probe states and
-follow uniformly random actions through the true dynamics, paid the task's true reward: a fixed budget, the
-same for every method of a preset, and short beside what the heads were trained with. Its learning rate decays
-linearly from the agent's to :data:`REFIT_LR_DECAY` of it over those updates, so that it reads where heads
-trained through the model settle rather than where a short refit at a constant learning rate happens to stop.
-It settles in more cases than the short refit, not in all (``benchmarks/refit_budget.py`` compares budgets;
-docs: Evaluation, "Which part forgot"). It cannot teach the model anything: the update runs with
-``train_world_model=False``, so the world model's optimizer never steps, the heads see the model's latents
+``minigrid-cpu`` about a tenth of the updates one task trains its heads with), of H-step sequences that start
+on probe states and follow uniformly random actions through the true dynamics, paid the task's true reward: a
+fixed budget, the same for every method of a preset, and short beside what the heads were trained with. Its
+learning rate decays linearly from the agent's to :data:`REFIT_LR_DECAY` of it over those updates, so that it
+reads where heads trained through the model settle rather than where a short refit at a constant learning rate
+happens to stop. It settles in more cases than the short refit, not in all (``benchmarks/refit_budget.py``
+compares budgets; docs: Evaluation, "Which part forgot"). It cannot teach the model anything: the update runs
+with ``train_world_model=False``, so the world model's optimizer never steps, the heads see the model's latents
 detached, and the model's weights are checked unchanged afterwards. A refit's return can still be close to
 all or nothing (its planner reaches the goal or does not), so the swap test makes :data:`REFIT_DRAWS` refits
 with their own seeds and records their mean return, with the lowest and highest.

@@ -152,6 +152,7 @@ BAD_INVOCATIONS = {
     "rho-out-of-range": ["train", "smoke", "agent.tdmpc.rho=1.5", OUT],
     "episode-shorter-than-horizon": ["train", "smoke", "env.episode_length=2", OUT],
     "unknown-device": ["train", "smoke", "train.device=tpu", OUT],
+    "rehearsal-weight-without-joint": ["train", "smoke", "--method", "drago", "method.rehearsal.weight=0", OUT],
     "negative-seed": ["train", "smoke", "--seed", "-1", OUT],
     "override-without-equals": ["train", "smoke", "mlp_dim", OUT],
     "unknown-option": ["train", "smoke", "--bogus", OUT],
@@ -179,7 +180,7 @@ NAMED_IN_THE_MESSAGE = {
     "resume-missing-dir": "does-not-exist", "resume-corrupt-checkpoint": "task1_room1.pt",
     "unknown-subcommand": "frobnicate", "cuda-unavailable": "cuda", "allocator-env-maybe": "DRAGO_KEEP_FREED_MEMORY",
     "study-allocator-env-maybe": "DRAGO_KEEP_FREED_MEMORY", "episode-shorter-than-horizon": "env.episode_length",
-    "negative-seed": "--seed", "force-on-foreign-dir": "not a drago run", "resume-not-a-run": "not a drago run",
+    "negative-seed": "--seed", "rehearsal-weight-without-joint": "method.rehearsal.mode=joint", "force-on-foreign-dir": "not a drago run", "resume-not-a-run": "not a drago run",
     "no-subcommand": "COMMAND", "missing-preset": "preset", "list-extra-argument": "extra",
 }
 

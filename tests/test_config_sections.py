@@ -56,6 +56,15 @@ def test_a_setting_the_run_would_ignore_is_refused_naming_who_reads_it(overrides
     assert "\n" not in str(err.value) and str(err.value).endswith("remove it")
 
 
+def test_the_rehearsal_weight_is_read_only_in_joint_mode():
+    # Separate mode (the default) takes its own optimizer step and has no weight to set.
+    with pytest.raises(ConfigError, match="^setting 'method.rehearsal.weight' .* add method.rehearsal.mode=joint"):
+        drago.load_config("smoke", ["method.rehearsal.weight=0"], method="drago-no-reviewer")
+    cfg = drago.load_config("smoke", ["method.rehearsal.mode=joint", "method.rehearsal.weight=0.5"],
+                            method="drago-no-reviewer")
+    assert (cfg.method.rehearsal.mode, cfg.method.rehearsal.weight) == ("joint", 0.5)
+
+
 def test_the_same_settings_apply_where_they_are_read_and_presets_may_set_any_section():
     cfg = drago.load_config("smoke", ["method.ewc.coef=5", "agent.tdmpc.horizon=4"], method="ewc")
     assert (cfg.method.ewc.coef, cfg.agent.tdmpc.horizon) == (5.0, 4)

@@ -1012,8 +1012,9 @@ def _check_relations(cfg: Config) -> None:
             and rehearsal.weight != 1.0:
         # Separate mode is the official code's own optimizer step, which has no weight; a silent 1.0 would run
         # another experiment than the one asked for.
-        raise ConfigError(f"setting 'method.rehearsal.weight' ({rehearsal.weight}) weights the rehearsal term only with "
-                          "method.rehearsal.mode=joint; add method.rehearsal.mode=joint or leave the weight at 1.0")
+        raise ConfigError(f"setting 'method.rehearsal.weight' ({rehearsal.weight}) weights the rehearsal term only "
+                          "with method.rehearsal.mode=joint; add method.rehearsal.mode=joint or leave the weight at "
+                          "1.0")
     if not 0.0 <= cfg.method.replay.fraction < 1.0:
         # The old rows' weight is f / (1 - f): all-old batches would leave the current task unweighted.
         raise ConfigError(f"setting 'method.replay.fraction' must lie in [0, 1), got {cfg.method.replay.fraction}")

@@ -180,7 +180,8 @@ NAMED_IN_THE_MESSAGE = {
     "resume-missing-dir": "does-not-exist", "resume-corrupt-checkpoint": "task1_room1.pt",
     "unknown-subcommand": "frobnicate", "cuda-unavailable": "cuda", "allocator-env-maybe": "DRAGO_KEEP_FREED_MEMORY",
     "study-allocator-env-maybe": "DRAGO_KEEP_FREED_MEMORY", "episode-shorter-than-horizon": "env.episode_length",
-    "negative-seed": "--seed", "rehearsal-weight-without-joint": "method.rehearsal.mode=joint", "force-on-foreign-dir": "not a drago run", "resume-not-a-run": "not a drago run",
+    "negative-seed": "--seed", "rehearsal-weight-without-joint": "method.rehearsal.mode=joint",
+    "force-on-foreign-dir": "not a drago run", "resume-not-a-run": "not a drago run",
     "no-subcommand": "COMMAND", "missing-preset": "preset", "list-extra-argument": "extra",
 }
 

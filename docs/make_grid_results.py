@@ -36,6 +36,19 @@ _docs = DOCS  # where the files are written: the docs folder, or --docs (a copy,
 START, END = "<!-- grid-records:start -->", "<!-- grid-records:end -->"
 ROOMS = ("room1", "room2", "room3", "room4")
 LEARNED = 0.80  # a room counts as learned at this fraction of its DP optimum at its task's end (issue's bar)
+# A task's final evaluation is one sample of ten episodes; its last training episodes say whether the learner had
+# settled: the share of them that reached half the optimum (a dense return that low means the goal came late or
+# never).
+LATE_EPISODES = 20
+
+
+def _late_success(train_rows: list[dict[str, str]], optimum: dict[str, float]) -> dict[str, float]:
+    """Per task, the share of its last ``LATE_EPISODES`` learner training episodes at ≥ half its DP optimum."""
+    returns = defaultdict(list)
+    for r in train_rows:
+        returns[r["task"]].append(float(r["episode_reward"]))
+    return {task: float(np.mean([v >= 0.5 * optimum[task] for v in values[-LATE_EPISODES:]]))
+            for task, values in returns.items() if optimum.get(task)}
 
 
 def _csv(text: str) -> list[dict[str, str]]:
@@ -90,6 +103,8 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
             swap[(int(r["stage"]), r["task"])] = {column: float(r[column]) / optimum
                                                  for column in SWAP_READINGS if r.get(column) not in (None, "")}
         costs = _csv(files.get("costs.csv", ""))
+        optimum = {r["task"]: float(r["optimal_return"]) for r in _csv(files.get("eval.csv", ""))
+                   if r.get("optimal_return") not in (None, "")}
         settings = record["protocol"]["run"]
         units.append({"path": path,
                       "env_steps": (sum(int(r["learner_env_steps"]) for r in costs),
@@ -98,6 +113,7 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
                       "digest": record["protocol"]["digest"], "provenance": record["provenance"],
                       "threshold_offset": float(settings.get("method.reviewer.threshold_offset") or 0.0),
                       "final": {t["name"]: t["fraction_of_optimal"] for t in summary["tasks"]},
+                      "late_success": _late_success(_csv(files.get("train.csv", "")), optimum),
                       "cpu_h": sum(float(t.get("cpu_time_s") or 0) for t in summary["tasks"]) / 3600,
                       "coverage": {(int(r["stage"]), r["room"]): float(r["accuracy"]) for r in coverage},
                       "zero_shot": {(int(r["stage"]), r["task"]): float(r["fraction"]) for r in zero
@@ -133,7 +149,8 @@ FORGOT_ROWS = (
 FORGOT_METHODS = ("drago", "continual", "ewc", "replay", "drago-no-rehearsal", "drago-no-reviewer", "scratch")
 
 WHAT = {
-    "grid_records_final.csv": "fraction of the DP optimum each training task of a unit ended at",
+    "grid_records_final.csv": "fraction of the DP optimum each training task of a unit ended at, and the share "
+                              "of its last 20 learner training episodes that reached half the optimum",
     "grid_records_coverage.csv": "world-model exact-match coverage per room after each stage",
     "grid_records_zero_shot.csv": "zero-shot return (retained model + true reward) per stage and task, as a "
                                   "fraction of the DP optimum",
@@ -181,9 +198,11 @@ def write_sources(units: list[dict], folder: Path, what_of: dict[str, str], stud
 
 def write_data(units: list[dict]) -> list[Path]:
     out = []
-    rows = [{"method": u["method"], "seed": u["seed"], "task": task, "fraction_of_optimal": frac}
+    rows = [{"method": u["method"], "seed": u["seed"], "task": task, "fraction_of_optimal": frac,
+             "late_training_success": u["late_success"].get(task)}
             for u in units for task, frac in u["final"].items()]
-    out.append(_write("grid_records_final.csv", rows, ("method", "seed", "task", "fraction_of_optimal")))
+    out.append(_write("grid_records_final.csv", rows,
+                      ("method", "seed", "task", "fraction_of_optimal", "late_training_success")))
     out.append(_write("grid_records_coverage.csv", *_coverage_rows(units, ("method", "seed"))))
     rows = [{"method": u["method"], "seed": u["seed"], "stage": stage, "task": task, "fraction": frac}
             for u in units for (stage, task), frac in sorted(u["zero_shot"].items())]
@@ -268,6 +287,11 @@ def forgot_table(units: list[dict]) -> list[str]:
     return lines
 
 
+def _late_note(unit: dict, task: str) -> str:
+    share = unit.get("late_success", {}).get(task)
+    return "" if share is None else f" (last {LATE_EPISODES} training episodes: {share:.0%} reached half the optimum)"
+
+
 def _by_method(units: list[dict]) -> dict[str, list[dict]]:
     by = defaultdict(list)
     for u in units:
@@ -317,8 +341,8 @@ def verdicts(units: list[dict], reviewer_units: list[dict] = (),
         if not mine:
             rows.append((claim, "pending: no seed recorded", ""))
             continue
-        fails = [f"seed {u['seed']} {task} {frac:.2f}" for u in mine for task, frac in u["final"].items()
-                 if frac is not None and frac < LEARNED]
+        fails = [f"seed {u['seed']} {task} {frac:.2f}" + _late_note(u, task) for u in mine
+                 for task, frac in u["final"].items() if frac is not None and frac < LEARNED]
         shown = "; ".join(f"seed {u['seed']}: " + " / ".join(f"{u['final'].get(r, float('nan')):.2f}" for r in ROOMS)
                           for u in mine)
         seeds = f" ({len(mine)} of {len(DEFAULT_SEEDS)} seeds)"

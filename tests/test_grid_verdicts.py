@@ -53,6 +53,19 @@ def test_one_seed_is_pending_and_a_failed_room_is_named():
     assert row(rows, "`drago-no-reviewer` learns every room")[1] == "pending: no seed recorded"
 
 
+def test_a_failed_room_says_whether_its_learner_had_settled():
+    # room1's optimum is 200: of its last 20 training episodes 15 reach 100 (half), 5 do not; the 5 episodes
+    # before them, all at 0, are too early to count. room2 has no optimum and so no reading.
+    train = ([{"task": "room1", "episode_reward": "0"}] * 5 + [{"task": "room1", "episode_reward": "100"}] * 15
+             + [{"task": "room1", "episode_reward": "99.9"}] * 5 + [{"task": "room2", "episode_reward": "5"}])
+    late = grid._late_success(train, {"room1": 200.0})
+    assert late == {"room1": 0.75}
+    failed = unit("drago", 1, 0.9, final=0.5)
+    failed["late_success"] = late
+    learns = row(grid.verdicts([failed]), "`drago` learns every room")[1]
+    assert learns.startswith("fails: seed 1 room1 0.50 (last 20 training episodes: 75% reached half the optimum)")
+
+
 def test_the_reviewer_study_and_the_dense_transfers_are_judged_against_continual():
     main = [unit("continual", s, 0.1 + 0.01 * s) for s in (1, 2, 3)]
     reviewer = [unit("drago-no-rehearsal", s, 0.5 + 0.01 * s, offset=3.0) for s in (1, 2, 3)]

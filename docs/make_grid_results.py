@@ -36,7 +36,7 @@ _docs = DOCS  # where the files are written: the docs folder, or --docs (a copy,
 START, END = "<!-- grid-records:start -->", "<!-- grid-records:end -->"
 ROOMS = ("room1", "room2", "room3", "room4")
 LEARNED = 0.80  # a room counts as learned at this fraction of its DP optimum at its task's end (issue's bar)
-# A task's final evaluation is one sample of ten episodes; its last training episodes say whether the learner had
+# A task's final evaluation is a small sample of episodes; its last training episodes say whether the learner had
 # settled: the share of them that reached half the optimum (a dense return that low means the goal came late or
 # never).
 LATE_EPISODES = 20

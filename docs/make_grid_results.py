@@ -103,8 +103,7 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
             swap[(int(r["stage"]), r["task"])] = {column: float(r[column]) / optimum
                                                  for column in SWAP_READINGS if r.get(column) not in (None, "")}
         costs = _csv(files.get("costs.csv", ""))
-        optimum = {r["task"]: float(r["optimal_return"]) for r in _csv(files.get("eval.csv", ""))
-                   if r.get("optimal_return") not in (None, "")}
+        optimum = {t["name"]: t.get("optimal_return") for t in summary["tasks"]}
         settings = record["protocol"]["run"]
         units.append({"path": path,
                       "env_steps": (sum(int(r["learner_env_steps"]) for r in costs),

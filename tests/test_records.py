@@ -272,7 +272,8 @@ def test_the_results_page_section_is_regenerated_from_the_records(recorded, tmp_
     assert "| `ewc` | – | to do | to do | to do |" in table, table
     assert "pending: 0 and 1 of 3 seeds recorded" in page  # drago against continual: one seed of continual only
     rows = (docs / "data" / "grid_records_final.csv").read_text().splitlines()
-    assert rows[0] == "method,seed,task,fraction_of_optimal" and len(rows) == 1 + 2 * 4
+    assert rows[0] == "method,seed,task,fraction_of_optimal,late_training_success" and len(rows) == 1 + 2 * 4
+    assert all(0.0 <= float(row.split(",")[4]) <= 1.0 for row in rows[1:])  # share of late training episodes
     # which part forgot: room 1 after the second task, its own heads, through the records' swap test
     forgot = next(line for line in page.splitlines() if line.startswith("| dynamics, 1 step (share exact) |"))
     assert forgot.count("(1 seed)") == 2  # continual and the second recorded method, one seed each

@@ -51,7 +51,8 @@ def fraction(model, heads, task="room1") -> float:
 def learned_heads() -> TaskHeads:
     """Heads trained on room 1 over the true model (the refit from random weights): what "saved after k" holds."""
     torch.manual_seed(0)
-    return refit_heads(TrueModel(), TaskHeads(3, 3, CFG.tdmpc.mlp_dim, True), grid_probe("room1", CFG.tdmpc.discount), CFG)
+    heads = TaskHeads(3, 3, CFG.tdmpc.mlp_dim, True)
+    return refit_heads(TrueModel(), heads, grid_probe("room1", CFG.tdmpc.discount), CFG)
 
 
 def test_the_probe_is_room_one_with_its_dp_values():
@@ -161,3 +162,18 @@ def test_eval_components_writes_its_files_and_the_report_shows_them(tmp_path, ca
     assert "## The swap test" in page and "## What each method stores and spends" in page
     assert cli.main(["eval", "components", str(tmp_path)]) == 2
     assert "is not a drago run directory (no config.yaml)" in capsys.readouterr().err
+
+
+def test_the_cost_table_marks_a_generator_no_task_trained():
+    from drago.report.components import _cost_table
+
+    def costs(vae_updates: int) -> list[dict]:
+        return [{"bytes_world_model": 2_000_000, "bytes_generator": 500_000, "bytes_fisher": 0, "bytes_anchor": 0,
+                 "bytes_raw_transitions": 0, "bytes_other": 0, "raw_data": False, "learner_env_steps": 10,
+                 "reviewer_env_steps": 5, "learner_updates": 9, "reviewer_updates": 4, "vae_updates": vae_updates,
+                 "cpu_s": 3600.0}]
+
+    table = _cost_table({}, {"rehearsing": [costs(9)], "idle": [costs(0), costs(0)]}, {})
+    carried = {row[0]: row[1] for row in table.rows}
+    assert carried == {"rehearsing": "world model 2.00, generator 0.50",
+                       "idle": "world model 2.00, generator 0.50 (never trained)"}

@@ -130,6 +130,15 @@ def _mb(n: float) -> str:
     return f"{n / 1e6:.2f}"
 
 
+def _carried_text(carried: dict[str, float], per_run: list[list[dict[str, Any]]]) -> str:
+    """The carried kinds with their MB; a generator no task of any run updated is marked, since it is carried
+    without anything learned in it (``drago-no-rehearsal`` builds DRAGO's generator and never trains it)."""
+    idle_generator = all(row.get("vae_updates") == 0 for rows in per_run for row in rows)
+    return ", ".join(f"{kind.replace('_', ' ')} {_mb(carried[kind])}"
+                     + (" (never trained)" if kind == "generator" and idle_generator else "")
+                     for kind in BYTE_KINDS if carried[kind])
+
+
 def _cost_table(groups: dict[str, list[ReportedRun]], costs: dict[str, list[list[dict[str, Any]]]],
                 values: dict[str, dict[tuple[str, str, int], list[float]]]) -> Table | None:
     rows = []
@@ -144,7 +153,7 @@ def _cost_table(groups: dict[str, list[ReportedRun]], costs: dict[str, list[list
         kept = _old_task_retention(values.get(label, {}))
         per_mb = [k / total_mb for k in kept] if total_mb else []
         per_cpu = [k / c for k, c in zip(kept, cpu_h) if c] if kept else []
-        kinds = ", ".join(f"{kind.replace('_', ' ')} {_mb(carried[kind])}" for kind in BYTE_KINDS if carried[kind])
+        kinds = _carried_text(carried, per_run)
         rows.append((label, kinds or "–", f"{total_mb:.2f}", "yes" if any(r["raw_data"] for r in last) else "no",
                      f"{np.mean(steps):,.0f}", f"{np.mean(reviewer):,.0f}", f"{np.mean(updates):,.0f}",
                      format_summary(cpu_h)[0], format_summary(kept)[0], format_summary(per_mb)[0],
@@ -153,7 +162,8 @@ def _cost_table(groups: dict[str, list[ReportedRun]], costs: dict[str, list[list
         return None
     return Table("costs", "What each method stores and spends",
                  "What a run carries into its next task (MB by kind after its last task: the world model, a "
-                 "generator, a Fisher diagonal and anchor weights, raw transitions of earlier tasks), whether that "
+                 "generator (marked where the run never trained it), a Fisher diagonal and anchor weights, raw "
+                 "transitions of earlier tasks), whether that "
                  "includes raw data, the env steps of its learner and reviewer and its gradient updates over the "
                  "whole sequence (means over seeds), its CPU hours, and its retention: the mean one-step dynamics "
                  "accuracy on the earlier tasks' probes after the last stage, also per MB carried and per "

@@ -383,10 +383,9 @@ def _recorded_line(units: list[dict], planned: int, what: str) -> str:
     digests = sorted({u["digest"] for u in units})
     cpus = sorted({u["provenance"]["cpu"] for u in units})
     commits = sorted({str(u["provenance"]["commit"])[:7] for u in units})
-    dates = sorted(u["provenance"]["recorded"][:10] for u in units)
-    span = dates[0] if dates and dates[0] == dates[-1] else f"{dates[0]} to {dates[-1]}" if dates else ""
-    when = (f", protocol {', '.join(digests)}, recorded {span} on {'; '.join(cpus)} at commit "
-            f"{', '.join(commits)}") if units else ""
+    dates = sorted({u["provenance"]["recorded"][:10] for u in units})
+    when = (f", protocol {', '.join(digests)}, recorded {' to '.join(dict.fromkeys((dates[0], dates[-1])))} on "
+            f"{'; '.join(cpus)} at commit {', '.join(commits)}") if units else ""
     count = len({(u["method"], u["seed"], u["threshold_offset"]) for u in units})
     return f"**{count} of {planned} units recorded** ({what}){when}."
 

@@ -1,4 +1,5 @@
-"""End-to-end behaviour of the continual trainer on the `smoke` preset (paper §3.3, Algorithm 1; paper §3.3; docs: Design, how a run flows).
+"""End-to-end behaviour of the continual trainer on the `smoke` preset (paper §3.3, Algorithm 1; docs: Design, how a
+run flows).
 
 One smoke run (four tasks of 400 agent steps) takes a few seconds; the module shares one reference run.
 """
@@ -353,6 +354,39 @@ def test_a_checkpoint_with_a_nan_is_never_written(tmp_path):
         save_checkpoint(path, {"world_model": {"w": torch.tensor([1.0, float("inf")])}}, kind="task",
                         domain="minigrid")
     assert path.read_bytes() == before and not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupt_during_a_checkpoint_write_stops_after_the_write(tmp_path, monkeypatch, signum):
+    """Ctrl-C or `kill` while torch writes a checkpoint: the file is whole and loads, and the command stops with
+    an interrupt right after (inside torch's zip writer the interrupt surfaced as a RuntimeError instead)."""
+    from drago.cli import _terminate_as_interrupt
+
+    class SignalledMidway:
+        """The file torch writes to; the signal arrives in the middle of the archive."""
+
+        def __init__(self, handle):
+            self.handle, self.writes = handle, 0
+
+        def write(self, data):
+            self.writes += 1
+            if self.writes == 3:
+                os.kill(os.getpid(), signum)
+            return self.handle.write(data)
+
+        def flush(self):
+            self.handle.flush()
+
+    save = torch.save
+    monkeypatch.setattr(torch, "save", lambda obj, handle: save(obj, SignalledMidway(handle)))
+    path = tmp_path / "task1_room1.pt"
+    tensors = {f"w{i}": torch.full((4096,), float(i)) for i in range(8)}
+    with _terminate_as_interrupt(), pytest.raises(KeyboardInterrupt):
+        save_checkpoint(path, {"world_model": tensors}, kind="task", domain="minigrid")
+    monkeypatch.undo()
+    loaded = load_checkpoint(path, kind="task")
+    assert all(torch.equal(loaded["world_model"][k], v) for k, v in tensors.items())
+    assert not list(tmp_path.glob(".*.tmp"))
 
 
 @pytest.mark.slow

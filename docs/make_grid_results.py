@@ -1,12 +1,13 @@
 """Regenerate the grid study's section of the results page from the committed records.
 
     .venv/bin/python docs/make_grid_results.py [--records results/grid] [--reviewer-records results/grid-reviewer]
-        [--dense-records results/grid-dense] [--preset minigrid-cpu]
+        [--reviewer-2x-records results/grid-reviewer-2x] [--dense-records results/grid-dense] [--preset minigrid-cpu]
 
-Reads every record of the main study (``drago study --records results/grid``) and of its two side studies
-where they have records (does the reviewer regain anything: ``drago-no-rehearsal`` paid against a lowered θ;
-transfer that can learn: the transfer cases with dense reward), writes the per-unit numbers the section shows
-into ``docs/data/grid_*records_*.csv``, builds the reports of the records into ``docs/grid-report/`` and
+Reads every record of the main study (``drago study --records results/grid``) and of its side studies where
+they have records (does the reviewer regain anything: ``drago-no-rehearsal`` paid against a lowered θ, and the
+same beside ``continual`` at twice the task budget; transfer that can learn: the transfer cases with dense
+reward), writes the per-unit numbers the section shows into ``docs/data/grid_*records_*.csv``, builds the
+reports of the records into ``docs/grid-report/``, ``docs/grid-reviewer-2x-report/`` and
 ``docs/grid-dense-report/`` (report.md and its figures), and rewrites the part of ``docs/results.md`` between
 the markers ``<!-- grid-records:start -->`` and ``<!-- grid-records:end -->``: what is recorded and what is
 left, and the paper's claims, each with its verdict from the records with 95% CIs, or the seeds it still waits
@@ -111,6 +112,7 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
                       "method": record["unit"]["method"], "seed": record["unit"]["seed"],
                       "digest": record["protocol"]["digest"], "provenance": record["provenance"],
                       "threshold_offset": float(settings.get("method.reviewer.threshold_offset") or 0.0),
+                      "steps_per_task": settings.get("train.steps_per_task"),
                       "final": {t["name"]: t["fraction_of_optimal"] for t in summary["tasks"]},
                       "late_success": _late_success(_csv(files.get("train.csv", "")), optimum),
                       "cpu_h": sum(float(t.get("cpu_time_s") or 0) for t in summary["tasks"]) / 3600,
@@ -163,6 +165,10 @@ WHAT = {
 #: The side studies' data files, written once they have records.
 WHAT_REVIEWER = {"grid_reviewer_records_coverage.csv": "drago-no-rehearsal with its reviewer paid against a lowered "
                                                        "θ: world-model exact-match coverage per room after each stage"}
+WHAT_REVIEWER_2X = {"grid_reviewer_2x_records_coverage.csv": "drago-no-rehearsal with its reviewer paid against a "
+                                                             "lowered θ, and continual, both at twice the task budget: "
+                                                             "world-model exact-match coverage per room after each "
+                                                             "stage"}
 WHAT_DENSE = {"grid_dense_records_transfers.csv": "the transfer cases with dense reward: few-shot return at equal "
                                                   "learner episodes and at equal env steps, and the mean over the "
                                                   "learning curve, as fractions of the optimum"}
@@ -173,6 +179,10 @@ MAIN_STUDY = f"{STUDY} --methods {' '.join(DEFAULT_METHODS)} --out runs/study/gr
 # the reviewer study asks what the reviewer keeps, so its units are runs without transfer cases
 REVIEWER_STUDY = (f"{STUDY} --methods drago-no-rehearsal method.reviewer.threshold_offset=3 --no-transfer "
                   f"--out runs/study/grid-reviewer")
+# twice the task budget: the learner's and the reviewer's steps, and the learning rate's decay stretched to match
+REVIEWER_2X_STUDY = (f"{STUDY} --methods drago-no-rehearsal continual method.reviewer.threshold_offset=3 "
+                     f"train.steps_per_task=20000 train.reviewer_steps_per_task=10000 "
+                     f"agent.tdmpc.lr_schedule_steps=20000 --no-transfer --out runs/study/grid-reviewer-2x")
 DENSE_STUDY = (f"{STUDY} --methods drago continual replay scratch --transfer-reward dense --transfer-episodes 100 "
                f"--out runs/study/grid-dense")
 
@@ -225,13 +235,15 @@ def _transfer_rows(units: list[dict]) -> list[dict]:
             for u in units for case, readings in sorted(u["transfers"].items())]
 
 
-def write_side_data(reviewer_units: list[dict], dense_units: list[dict]) -> list[Path]:
-    """The data of the reviewer study (its coverage, with the offset of θ it paid against) and of the dense
+def write_side_data(reviewer_units: list[dict], dense_units: list[dict], reviewer_2x_units: list[dict] = ()
+                    ) -> list[Path]:
+    """The data of the reviewer studies (their coverage, with the offset of θ each paid against) and of the dense
     transfers, each only once it has a record."""
     out = []
-    if reviewer_units:
-        out.append(_write("grid_reviewer_records_coverage.csv",
-                          *_coverage_rows(reviewer_units, ("method", "threshold_offset", "seed"))))
+    for name, pool in (("grid_reviewer_records_coverage.csv", reviewer_units),
+                       ("grid_reviewer_2x_records_coverage.csv", reviewer_2x_units)):
+        if pool:
+            out.append(_write(name, *_coverage_rows(pool, ("method", "threshold_offset", "seed"))))
     if dense_units:
         out.append(_write("grid_dense_records_transfers.csv", _transfer_rows(dense_units), TRANSFER_COLUMNS))
     return out
@@ -328,10 +340,11 @@ def _transfer_mean(u: dict, reading: str, reward: str) -> float | None:
     return float(np.mean(values)) if len(values) == 4 and None not in values else None
 
 
-def verdicts(units: list[dict], reviewer_units: list[dict] = (),
-             dense_units: list[dict] = ()) -> list[tuple[str, str, str]]:
+def verdicts(units: list[dict], reviewer_units: list[dict] = (), dense_units: list[dict] = (),
+             reviewer_2x_units: list[dict] = ()) -> list[tuple[str, str, str]]:
     """The paper's claims, each ``(claim, verdict, numbers)``: from the main study's ``units``, the reviewer
-    study's (``drago-no-rehearsal`` paid against a lowered θ) and the dense transfers'."""
+    study's (``drago-no-rehearsal`` paid against a lowered θ), the dense transfers' and the reviewer study at
+    twice the task budget's (``drago-no-rehearsal`` against ``continual`` of the same budget)."""
     by = _by_method(units)
     rows = []
     for method in ("drago", "drago-no-rehearsal", "drago-no-reviewer"):
@@ -364,6 +377,16 @@ def verdicts(units: list[dict], reviewer_units: list[dict] = (),
         rows.append(_against(f"the reviewer alone, paid against {paid}, retains more than `continual`" + retained,
                              f"drago-no-rehearsal (θ − {offset:g})" if offset is not None else "drago-no-rehearsal",
                              values(mine, _old_rooms), "continual", base))
+    if reviewer_2x_units:
+        by_2x = _by_method(reviewer_2x_units)
+        steps = sorted({u["steps_per_task"] for u in reviewer_2x_units if u.get("steps_per_task")})
+        budget = " or ".join(f"{s:,}" for s in steps) + " steps a task" if steps else "twice the task budget"
+        for offset in sorted({u["threshold_offset"] for u in by_2x.get("drago-no-rehearsal", [])}) or [3.0]:
+            mine = [u for u in by_2x.get("drago-no-rehearsal", []) if u["threshold_offset"] == offset]
+            rows.append(_against(f"the reviewer alone, paid against θ − {offset:g}, retains more than `continual` at "
+                                 f"twice the task budget ({budget}, both)" + retained,
+                                 f"drago-no-rehearsal (θ − {offset:g}, 2×)", values(mine, _old_rooms),
+                                 "continual (2×)", values(by_2x.get("continual", []), _old_rooms)))
     rows.append(_against("a retained DRAGO model plans the test tasks better than `continual`'s (zero-shot, after "
                          "task 4)", "drago", values(by.get("drago", []), _zero_shot_tests), "continual",
                          values(by.get("continual", []), _zero_shot_tests)))
@@ -391,13 +414,17 @@ def _recorded_line(units: list[dict], planned: int, what: str) -> str:
 
 
 def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), reviewer_folder: Path | None = None,
-            dense_units: list[dict] = (), dense_folder: Path | None = None) -> str:
+            dense_units: list[dict] = (), dense_folder: Path | None = None, reviewer_2x_units: list[dict] = (),
+            reviewer_2x_folder: Path | None = None) -> str:
     command = " ".join(["docs/make_grid_results.py --records", str(folder),
                         *(["--reviewer-records", str(reviewer_folder)] if reviewer_folder else []),
+                        *(["--reviewer-2x-records", str(reviewer_2x_folder)] if reviewer_2x_folder else []),
                         *(["--dense-records", str(dense_folder)] if dense_folder else [])])
     lines = [f"Generated by `.venv/bin/python {command}` from the committed records; data in "
              f"`docs/data/grid_*records_*.csv`, the full report of the records in "
              f"[grid-report/report.md](grid-report/report.md)"
+             + (", the reviewer study at twice the task budget's in "
+                "[grid-reviewer-2x-report/report.md](grid-reviewer-2x-report/report.md)" if reviewer_2x_units else "")
              + (", the dense transfers' in [grid-dense-report/report.md](grid-dense-report/report.md)"
                 if dense_units else "") + ".", "",
              "- **The main study**: " + _recorded_line(units, len(DEFAULT_METHODS) * len(DEFAULT_SEEDS),
@@ -408,7 +435,11 @@ def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), re
              "- **Does the reviewer regain anything?** " + _recorded_line(
                  reviewer_units, len(DEFAULT_SEEDS), "`drago-no-rehearsal`, its reviewer paid against θ − 3; runs and "
                  "their evaluations, no transfer cases")
-             + f" Made by `{REVIEWER_STUDY} --records {reviewer_folder or 'results/grid-reviewer'}`.",
+             + f" Made by `{REVIEWER_STUDY} --records {reviewer_folder or 'results/grid-reviewer'}`."
+             + ("" if not reviewer_2x_units else " At twice the task budget, beside `continual` at the same budget: "
+                + _recorded_line(reviewer_2x_units, 2 * len(DEFAULT_SEEDS), "`drago-no-rehearsal` paid against θ − 3 "
+                                 "and `continual`")
+                + f" Made by `{REVIEWER_2X_STUDY} --records {reviewer_2x_folder}`."),
              "- **Transfer that can learn**: " + _recorded_line(
                  dense_units, 4 * len(DEFAULT_SEEDS), "`drago`, `continual`, `replay` and `scratch`, the four "
                  "transfer cases with dense reward and 100 learner episodes")
@@ -434,7 +465,7 @@ def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), re
               "own on tasks 2-4.", "",
               "| the paper's claim | verdict from the records | numbers (mean ± std [95% CI]) |", "|---|---|---|"]
     lines += [f"| {claim} | {verdict} | {numbers} |"
-              for claim, verdict, numbers in verdicts(units, reviewer_units, dense_units)]
+              for claim, verdict, numbers in verdicts(units, reviewer_units, dense_units, reviewer_2x_units)]
     lines += ["", "A claim is confirmed only where the 95% CIs over seeds separate; the transfer rows average each "
               "unit's four cases first."]
     if (_docs / SCREENSHOT).is_file():
@@ -477,6 +508,9 @@ def main() -> int:
     parser.add_argument("--records", type=Path, default=Path("results/grid"), help="the main study's records")
     parser.add_argument("--reviewer-records", type=Path, default=Path("results/grid-reviewer"),
                         help="the records of drago-no-rehearsal paid against a lowered θ (left out if absent)")
+    parser.add_argument("--reviewer-2x-records", type=Path, default=Path("results/grid-reviewer-2x"),
+                        help="the records of drago-no-rehearsal and continual at twice the task budget (left out if "
+                             "absent)")
     parser.add_argument("--dense-records", type=Path, default=Path("results/grid-dense"),
                         help="the records of the dense-reward transfers (left out if absent)")
     parser.add_argument("--preset", default="minigrid-cpu", help="the study's preset; records of others are left out")
@@ -489,12 +523,16 @@ def main() -> int:
     units = load(folder, args.preset)
     reviewer_folder = args.reviewer_records if args.reviewer_records.is_dir() else None
     dense_folder = args.dense_records if args.dense_records.is_dir() else None
+    reviewer_2x_folder = args.reviewer_2x_records if args.reviewer_2x_records.is_dir() else None
     reviewer_units = load(reviewer_folder, args.preset) if reviewer_folder else []
+    reviewer_2x_units = load(reviewer_2x_folder, args.preset) if reviewer_2x_folder else []
     dense_units = load(dense_folder, args.preset) if dense_folder else []
     written = [*write_data(units), write_sources(units, folder, WHAT, MAIN_STUDY),
-               *write_side_data(reviewer_units, dense_units)]
+               *write_side_data(reviewer_units, dense_units, reviewer_2x_units)]
     if reviewer_units:
         written.append(write_sources(reviewer_units, reviewer_folder, WHAT_REVIEWER, REVIEWER_STUDY))
+    if reviewer_2x_units:
+        written.append(write_sources(reviewer_2x_units, reviewer_2x_folder, WHAT_REVIEWER_2X, REVIEWER_2X_STUDY))
     if dense_units:
         written.append(write_sources(dense_units, dense_folder, WHAT_DENSE, DENSE_STUDY))
     for path in written:
@@ -503,6 +541,8 @@ def main() -> int:
         # the reviewer study's runs are other runs of one method, reported beside the main study's under their own
         # label; the dense transfers hang off copies of the main study's runs, so they get a report of their own
         _build_report_into(_docs / "grid-report", [folder, *([reviewer_folder] if reviewer_units else [])])
+    if reviewer_2x_units:  # its continual is not the main study's: a report of its own keeps the two apart
+        _build_report_into(_docs / "grid-reviewer-2x-report", [reviewer_2x_folder])
     if dense_units:
         _build_report_into(_docs / "grid-dense-report", [dense_folder])
     page = _docs / "results.md"
@@ -512,7 +552,8 @@ def main() -> int:
         return 1
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
-    body = section(units, folder, reviewer_units, reviewer_folder, dense_units, dense_folder)
+    body = section(units, folder, reviewer_units, reviewer_folder, dense_units, dense_folder, reviewer_2x_units,
+                   reviewer_2x_folder)
     page.write_text(f"{head}{START}\n{body}\n{END}{tail}")
     print(f"wrote {page}")
     return 0

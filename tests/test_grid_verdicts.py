@@ -79,6 +79,17 @@ def test_the_reviewer_study_and_the_dense_transfers_are_judged_against_continual
         assert "dense reward" in claim and verdict == "not separated by the CIs so far (2 and 3 of 3 seeds)"
 
 
+def test_the_reviewer_at_twice_the_budget_is_judged_against_continual_at_twice_the_budget():
+    main = [unit("continual", s, 0.5 + 0.01 * s) for s in (1, 2, 3)]  # against these the 2× reviewer would lose
+    doubled = [{**unit(method, s, level + 0.01 * s, offset=offset), "steps_per_task": 20000} for s in (1, 2, 3)
+               for method, level, offset in (("drago-no-rehearsal", 0.30, 3.0), ("continual", 0.10, 0.0))]
+    claim, verdict, numbers = row(grid.verdicts(main, reviewer_2x_units=doubled),
+                                  "the reviewer alone, paid against θ − 3, retains more than `continual` at twice")
+    assert "20,000 steps a task" in claim and verdict == "confirmed (CIs separate)"
+    assert numbers.startswith("drago-no-rehearsal (θ − 3, 2×) 0.32") and "continual (2×) 0.12" in numbers
+    assert not any("twice" in r[0] for r in grid.verdicts(main))  # no such study recorded: no such row
+
+
 def test_a_unit_without_all_four_dense_cases_is_left_out_of_the_transfer_claims():
     partial = unit("drago", 1, 0.9, transfer=0.7)
     del partial["transfers"][CASES[0]]

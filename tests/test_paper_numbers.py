@@ -116,6 +116,29 @@ def test_runs_of_a_method_with_other_settings_are_reported_apart(tmp_path):
     assert list(label_runs(cases)) == ["drago"]
 
 
+def test_a_transfer_is_named_after_the_run_it_came_from(tmp_path):
+    """A report that splits a method by a setting names that method's transfers the same way in its transfer
+    tables, with a setting that sets the transfers themselves apart after it."""
+    from drago.report.build import _label_transfers
+
+    def source(seed: int, offset: int) -> ReportedRun:
+        cfg = load_config("minigrid-cpu", [f"method.reviewer.threshold_offset={offset}"], method="drago-no-rehearsal",
+                          seed=seed)
+        return ReportedRun(path=tmp_path / f"run-{seed}-{offset}", cfg=cfg, summary=None, eval_rows=[])
+
+    runs = [source(1, 0), source(1, 3)]
+    label_runs(runs)
+    usual = transfer(tmp_path, "minigrid-cpu", "drago-no-rehearsal", 1, "room1to2", 2)
+    cheaper = transfer(tmp_path, "minigrid-cpu", "drago-no-rehearsal", 1, "room1to3", 3)
+    cheaper.cfg.method.reviewer.cost_coef = 0.25
+    alone = transfer(tmp_path, "minigrid-cpu", "drago", 1, "room1to2", 2)  # a transfer given without its run
+    groups = _label_transfers([usual, cheaper, alone], {usual.path: runs[0], cheaper.path: runs[0]})
+    base = "drago-no-rehearsal [method.reviewer.threshold_offset=0.0]"
+    assert list(groups) == [f"{base} [method.reviewer.cost_coef=0.5]", f"{base} [method.reviewer.cost_coef=0.25]",
+                            "drago"]
+    assert list(_label_transfers([usual], {usual.path: runs[0]})) == [base]
+
+
 def test_the_docs_tables_hold_the_same_numbers():
     with (DOCS_DATA / "paper_table1.csv").open(newline="") as handle:
         for row in csv.DictReader(handle):

@@ -11,7 +11,8 @@ from drago.report.components import components_section
 from drago.report.content import Figure, Findings, Notes, Section
 from drago.report.figures import CURVES_PNG, HEATMAP_PNG, TRANSFER_PNG, curves_png, heatmap_figure, transfer_png
 from drago.report.render import REPORT_HTML, REPORT_MD, render_html, render_markdown
-from drago.report.runs import ReportError, find_transfer_dirs, label_runs, opened_runs, read_run, task_order
+from drago.report.runs import (ReportedRun, ReportError, find_transfer_dirs, label_runs, opened_runs, read_run,
+                               task_order)
 from drago.report.tables import (
     coverage_matrix,
     coverage_rows,
@@ -62,12 +63,28 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
         return _build_report(found, out_dir)
 
 
+def _label_transfers(transfers: list[ReportedRun], source_of: dict[Path, ReportedRun]) -> dict[str, list[ReportedRun]]:
+    """Group transfers as :func:`label_runs` does, each under its source run's label where the report split that
+    run's method by a setting, so that a method is named the same in every table; what sets the transfers
+    themselves apart (``transfer.reward=dense``) follows."""
+    label_runs(transfers)
+    groups: dict[str, list[ReportedRun]] = {}
+    for transfer in transfers:
+        source = source_of.get(transfer.path)
+        if source is not None and source.label != source.method:
+            own = transfer.label[len(transfer.method):].strip()
+            transfer.label = f"{source.label} {own}" if own else source.label
+        groups.setdefault(transfer.label, []).append(transfer)
+    return groups
+
+
 def _build_report(found: list[tuple[Path, str]], out_dir: str | Path) -> tuple[Path, Path]:
     given = [read_run(path, shown) for path, shown in found]
     runs = [run for run in given if not run.is_transfer]
     transfers = [run for run in given if run.is_transfer]
     findings = Findings()
     seen = {run.path.resolve() for run in given}
+    source_of: dict[Path, ReportedRun] = {}  # a transfer found in a run's folder -> that run
     for run in runs:
         for path in find_transfer_dirs(run.path):
             if path.resolve() in seen:
@@ -77,11 +94,12 @@ def _build_report(found: list[tuple[Path, str]], out_dir: str | Path) -> tuple[P
             transfer = read_run(path, shown)
             if transfer.is_transfer:
                 transfers.append(transfer)
+                source_of[transfer.path] = run
             else:
                 findings.missing.append(f"{shown}: not a transfer run (no transfer.checkpoint in its "
                                         f"{CONFIG_FILE}); left out")
     groups = label_runs(runs)
-    found_groups = label_runs(transfers)
+    found_groups = _label_transfers(transfers, source_of)
     tgroups = {label: found_groups[label] for label in dict.fromkeys([*groups, *found_groups]) if label in found_groups}
     colours = {label: f"C{i % 10}" for i, label in enumerate(dict.fromkeys([*groups, *tgroups]))}
     tasks = task_order(runs)

@@ -16,7 +16,7 @@ import pytest
 from drago import cli
 from drago.report.runs import ReportError, opened_runs
 from drago.study.local import run_study
-from drago.study.plan import DONE, START, plan_study
+from drago.study.plan import DONE, START, format_duration, plan_study
 from drago.training.records import RECORD_VERSION, RecordError, read_record, write_record
 
 METHODS = ("continual", "scratch")
@@ -164,6 +164,29 @@ def test_status_counts_units_and_the_cpu_hours_left(recorded, tmp_path, capsys):
     text = capsys.readouterr().out
     assert f"units:   2 recorded in {records}, 0 in progress here, 1 to do" in text
     assert "CPU-hours" in text and "left" in text
+
+
+@pytest.mark.slow
+def test_status_before_the_first_record_counts_from_the_finished_jobs(recorded, tmp_path):
+    """A study whose units take hours each says what is left before any is recorded: a unit of a method none of
+    whose runs has finished costs the mean finished run and, per transfer case, the mean finished transfer."""
+    from drago.study.plan import records_status
+    from drago.training.rundir import read_summary
+
+    out, _ = recorded
+    study = plan(out, tmp_path / "none-yet", methods=(*METHODS, "ewc"))
+    def cpu(job) -> float:
+        return sum(t["cpu_time_s"] for t in read_summary(job.directory)["tasks"])
+
+    finished = [j for j in (*study.runs, *study.transfers) if j.state == DONE]
+    runs = [cpu(j) for j in finished if j.kind == "run"]
+    transfers = [cpu(j) for j in finished if j.kind == "transfer"]
+    assert len(runs) == 2 and len(transfers) == 2 * len(study.cases)
+    # continual and scratch have finished every job (only their records are left); ewc has started none
+    left = np.mean(runs) + len(study.cases) * np.mean(transfers)
+    cost = next(line for line in records_status(study) if line.startswith("  cost:"))
+    assert cost.startswith(f"  cost:    about {left / 3600:.1f} CPU-hours ({format_duration(left)}) left before the "
+                           "units' evaluations"), cost
 
 
 def test_record_command_refuses_an_unfinished_run(tmp_path, capsys):

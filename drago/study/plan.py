@@ -623,9 +623,16 @@ def job_outcome(job: Job) -> str:
         return ""
 
 
+def _cpu_seconds(job: Job) -> float:
+    """CPU seconds of a job's finished tasks (0 before its first)."""
+    summary = read_summary(job.directory) if is_run_dir(job.directory) else None
+    return sum(float(t.get("cpu_time_s", 0.0)) for t in (summary or {}).get("tasks", []))
+
+
 def records_status(plan: StudyPlan) -> list[str]:
     """``--status`` of a study with a records folder: units recorded, in progress and to do, and the CPU-hours
-    left, estimated from the recorded units' own CPU time (per method where one is recorded)."""
+    left, estimated from the recorded units' own CPU time (per method where one is recorded); before any unit is
+    recorded, from the study's finished runs and transfers, with the record jobs' evaluations not counted."""
     from drago.eval.unit import unit_cpu_seconds
 
     if plan.records is None:
@@ -635,6 +642,17 @@ def records_status(plan: StudyPlan) -> list[str]:
         if run.recorded:
             spent.setdefault(run.method, []).append(unit_cpu_seconds(read_record(run.record)))
     every = [s for values in spent.values() for s in values]
+    # Before the first record (a study whose units take hours each), what the study's own finished jobs cost.
+    finished: dict[str, dict[str, list[float]]] = {"run": {}, "transfer": {}}
+    if not every:
+        for job in (*plan.runs, *plan.transfers):
+            if job.state == DONE:
+                finished[job.kind].setdefault(job.method, []).append(_cpu_seconds(job))
+
+    def job_mean(kind: str, method: str) -> float | None:
+        basis = finished[kind].get(method) or [s for values in finished[kind].values() for s in values]
+        return statistics.mean(basis) if basis else None
+
     left, unknown, started, todo = 0.0, [], 0, 0
     for run in plan.runs:
         if run.recorded:
@@ -643,21 +661,30 @@ def records_status(plan: StudyPlan) -> list[str]:
             started += 1
         else:
             todo += 1
+        done = _cpu_seconds(run) if is_run_dir(run.directory) else 0.0
         basis = spent.get(run.method) or every
-        if not basis:
+        if basis:
+            left += max(0.0, statistics.mean(basis) - done)
+            continue
+        parts = [] if run.state == DONE else [(job_mean("run", run.method), done)]
+        parts += [(job_mean("transfer", t.method), _cpu_seconds(t)) for t in plan.transfers
+                  if (t.method, t.seed) == (run.method, run.seed) and t.state != DONE]
+        if any(mean is None for mean, _ in parts):
             unknown.append(run.label)
             continue
-        done = sum(float(t.get("cpu_time_s", 0.0)) for t in ((read_summary(run.directory) or {}).get("tasks", [])
-                                                             if is_run_dir(run.directory) else []))
-        left += max(0.0, statistics.mean(basis) - done)
+        left += sum(max(0.0, mean - done) for mean, done in parts)
     recorded = sum(run.recorded for run in plan.runs)
     lines = [f"  units:   {recorded} recorded in {plan.records}, {started} in progress here, {todo} to do"]
     if recorded < len(plan.runs):
+        counted = len(unknown) < len(plan.runs) - recorded
         estimate = (f"about {left / 3600:.1f} CPU-hours ({format_duration(left)}) left (mean CPU time of the "
                     f"recorded units of the same method, else of all {len(every)}; the finished tasks of units in "
-                    "progress counted off)"
-                    if every else "CPU-hours left: unknown until a unit is recorded")
-        if every and unknown:
+                    "progress counted off)" if every else
+                    f"about {left / 3600:.1f} CPU-hours ({format_duration(left)}) left before the units' evaluations "
+                    f"(no unit recorded yet: mean CPU time of the study's finished runs and transfers of the same "
+                    f"method, else of all; the finished tasks of jobs in progress counted off)" if counted else
+                    "CPU-hours left: unknown until a unit is recorded or a run finishes")
+        if counted and unknown:
             estimate += f"; not counted: {', '.join(unknown)}"
         lines.append(f"  cost:    {estimate}")
     return lines

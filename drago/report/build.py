@@ -65,8 +65,8 @@ def build_report(run_dirs: Iterable[str | Path], out_dir: str | Path) -> tuple[P
 
 def _label_transfers(transfers: list[ReportedRun], source_of: dict[Path, ReportedRun]) -> dict[str, list[ReportedRun]]:
     """Group transfers as :func:`label_runs` does, each under its source run's label where the report split that
-    run's method by a setting, so that a method is named the same in every table; what sets the transfers
-    themselves apart (``transfer.reward=dense``) follows."""
+    run's method by a setting, so that a method is named the same in every table; a setting in which the
+    transfers themselves differ follows in brackets of its own."""
     label_runs(transfers)
     groups: dict[str, list[ReportedRun]] = {}
     for transfer in transfers:

@@ -370,23 +370,23 @@ def verdicts(units: list[dict], reviewer_units: list[dict] = (), dense_units: li
                           ("drago-no-rehearsal", "the reviewer alone retains more than `continual`"),
                           ("drago-no-reviewer", "rehearsal alone retains more than `continual`")):
         rows.append(_against(claim + retained, method, values(by.get(method, []), _old_rooms), "continual", base))
-    offsets = sorted({u["threshold_offset"] for u in reviewer_units}) or [None]
-    for offset in offsets:
-        mine = [u for u in reviewer_units if u["method"] == "drago-no-rehearsal" and u["threshold_offset"] == offset]
-        paid = "a lowered θ" if offset is None else f"θ − {offset:g}"
-        rows.append(_against(f"the reviewer alone, paid against {paid}, retains more than `continual`" + retained,
-                             f"drago-no-rehearsal (θ − {offset:g})" if offset is not None else "drago-no-rehearsal",
-                             values(mine, _old_rooms), "continual", base))
+    def reviewer_rows(pool: list[dict], base: list[float], at: str = "", tag: str = "") -> None:
+        """The reviewer alone, paid against each lowered θ in ``pool``, against ``continual``'s ``base``."""
+        reviewers = [u for u in pool if u["method"] == "drago-no-rehearsal"]
+        for offset in sorted({u["threshold_offset"] for u in reviewers}) or [None]:
+            mine = [u for u in reviewers if u["threshold_offset"] == offset]
+            paid = "a lowered θ" if offset is None else f"θ − {offset:g}"
+            shown = ", ".join(filter(None, (None if offset is None else paid, tag)))
+            rows.append(_against(f"the reviewer alone, paid against {paid}, retains more than `continual`{at}"
+                                 + retained, f"drago-no-rehearsal ({shown})" if shown else "drago-no-rehearsal",
+                                 values(mine, _old_rooms), f"continual ({tag})" if tag else "continual", base))
+
+    reviewer_rows(reviewer_units, base)
     if reviewer_2x_units:
-        by_2x = _by_method(reviewer_2x_units)
         steps = sorted({u["steps_per_task"] for u in reviewer_2x_units if u.get("steps_per_task")})
         budget = " or ".join(f"{s:,}" for s in steps) + " steps a task" if steps else "twice the task budget"
-        for offset in sorted({u["threshold_offset"] for u in by_2x.get("drago-no-rehearsal", [])}) or [3.0]:
-            mine = [u for u in by_2x.get("drago-no-rehearsal", []) if u["threshold_offset"] == offset]
-            rows.append(_against(f"the reviewer alone, paid against θ − {offset:g}, retains more than `continual` at "
-                                 f"twice the task budget ({budget}, both)" + retained,
-                                 f"drago-no-rehearsal (θ − {offset:g}, 2×)", values(mine, _old_rooms),
-                                 "continual (2×)", values(by_2x.get("continual", []), _old_rooms)))
+        reviewer_rows(reviewer_2x_units, values(_by_method(reviewer_2x_units).get("continual", []), _old_rooms),
+                      at=f" at twice the task budget ({budget}, both)", tag="2×")
     rows.append(_against("a retained DRAGO model plans the test tasks better than `continual`'s (zero-shot, after "
                          "task 4)", "drago", values(by.get("drago", []), _zero_shot_tests), "continual",
                          values(by.get("continual", []), _zero_shot_tests)))

@@ -79,19 +79,19 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
         coverage = _csv(files.get("coverage.csv", ""))
         zero = _csv(files.get("zero_shot.csv", ""))
         transfers = {}  # case -> reading -> fraction of the test task's optimum
+        transfer_episodes = 0  # the learner episodes of the longest transfer case
         for name, text in files.items():
             if name.startswith("transfer/") and name.endswith("/summary.json") and name.count("/") == 2:
                 case = name.split("/")[1]
                 block = json.loads(text).get("transfer") or {}
                 few_shot = block.get("few_shot") or {}
+                transfer_episodes = max(transfer_episodes, int((block.get("final") or {}).get("episode") or 0))
                 curve = [float(r["fraction_of_optimal"]) for r in _csv(files.get(f"transfer/{case}/eval.csv", ""))
                          if r.get("fraction_of_optimal") not in (None, "")]
                 transfers[case] = {"reward": block.get("reward"),
                                    **{reading: (few_shot.get(reading) or {}).get("fraction_of_optimal")
                                       for reading in TRANSFER_READINGS[:2]},
-                                   # the mean of the learning curve's evaluations: how fast it learned, not
-                                   # only where it stood at one episode
-                                   "curve_mean": float(np.mean(curve)) if curve else None}
+                                   **curve_readings(curve)}
         components = defaultdict(dict)  # (stage, task) -> component -> value
         stage_tasks = {}  # stage -> the task trained in it
         for r in _csv(files.get("components.csv", "")):
@@ -119,15 +119,27 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
                       "coverage": {(int(r["stage"]), r["room"]): float(r["accuracy"]) for r in coverage},
                       "zero_shot": {(int(r["stage"]), r["task"]): float(r["fraction"]) for r in zero
                                     if r.get("fraction") not in (None, "")},
-                      "transfers": transfers, "components": dict(components), "swap": swap,
+                      "transfers": transfers, "transfer_episodes": transfer_episodes,
+                      "components": dict(components), "swap": swap,
                       "stage_tasks": stage_tasks,
                       "evaluations": record["protocol"].get("evaluations", [])})
     return units
 
 
 #: A transfer case's readings: the few-shot score at equal learner episodes and at equal env steps (the study's
-#: few-shot episodes), and the mean over its learning curve; each a fraction of the test task's optimum.
-TRANSFER_READINGS = ("equal_episodes", "equal_env_steps", "curve_mean")
+#: few-shot episodes), the mean over its learning curve and the curve's end; each a fraction of the test task's
+#: optimum.
+TRANSFER_READINGS = ("equal_episodes", "equal_env_steps", "curve_mean", "curve_end")
+
+
+def curve_readings(curve: list[float]) -> dict[str, float | None]:
+    """A transfer's learning curve (its evaluations in order, fractions of the optimum) read twice: its mean, how
+    fast it learned rather than where it stood at one episode; and its end, the mean of its last tenth of
+    evaluations (at least one), where it got to. A transfer on the grid either finds its goal and climbs to the
+    optimum or never finds it, and the mean alone cannot tell a late climb from a half-way plateau."""
+    if not curve:
+        return {"curve_mean": None, "curve_end": None}
+    return {"curve_mean": float(np.mean(curve)), "curve_end": float(np.mean(curve[-max(1, len(curve) // 10):]))}
 #: The grid's test tasks (the transfer cases' tasks) the zero-shot claim averages over.
 TEST_TASKS = ("room1to2", "room1to3", "room3to4")
 #: The screenshot of the records' report, drawn in a fresh clone (docs/make_report_screenshots.py).
@@ -146,6 +158,12 @@ FORGOT_ROWS = (
     ("swap", "refit", "return: last model, heads refit (c)"),
     ("swap", "true_reward", "return: last model, true reward (d)"),
 )
+#: The dense transfers' methods, in the order the issue names them, and the readings their table shows.
+DENSE_METHODS = ("drago", "continual", "replay", "scratch")
+DENSE_READINGS = (("equal_episodes", "few-shot at equal learner episodes"),
+                  ("equal_env_steps", "few-shot at equal env steps"),
+                  ("curve_mean", "mean over the learning curve"),
+                  ("curve_end", "end of the learning curve, its last tenth"))
 #: The methods of the "which part forgot" table, in the order the issue names them first.
 FORGOT_METHODS = ("drago", "continual", "ewc", "replay", "drago-no-rehearsal", "drago-no-reviewer", "scratch")
 
@@ -156,7 +174,8 @@ WHAT = {
     "grid_records_zero_shot.csv": "zero-shot return (retained model + true reward) per stage and task, as a "
                                   "fraction of the DP optimum",
     "grid_records_transfers.csv": "each transfer case's few-shot return at equal learner episodes and at equal env "
-                                  "steps, and the mean over its learning curve, as fractions of the DP optimum",
+                                  "steps, the mean over its learning curve and the mean of the curve's last tenth, "
+                                  "as fractions of the DP optimum",
     "grid_records_components.csv": "per-component retention (drago eval components) of every task seen after each "
                                    "stage",
     "grid_records_swap.csv": "the swap test of every earlier task after each stage, returns as fractions of the DP "
@@ -170,8 +189,9 @@ WHAT_REVIEWER_2X = {"grid_reviewer_2x_records_coverage.csv": "drago-no-rehearsal
                                                              "world-model exact-match coverage per room after each "
                                                              "stage"}
 WHAT_DENSE = {"grid_dense_records_transfers.csv": "the transfer cases with dense reward: few-shot return at equal "
-                                                  "learner episodes and at equal env steps, and the mean over the "
-                                                  "learning curve, as fractions of the optimum"}
+                                                  "learner episodes and at equal env steps, the mean over the "
+                                                  "learning curve and the mean of the curve's last tenth, as "
+                                                  "fractions of the optimum"}
 #: The commands that make each study's records (run from the repository's root). Each study needs a folder of
 #: its own: one folder cannot hold two runs of a method and seed with different settings.
 STUDY = "drago study minigrid-cpu --seeds 1-3 --jobs 2 train.threads=1"
@@ -298,6 +318,29 @@ def forgot_table(units: list[dict]) -> list[str]:
     return lines
 
 
+def dense_table(units: list[dict]) -> list[str]:
+    """Every method of the dense transfers on each reading, each unit's mean over its four cases first, then mean ±
+    std [95% CI] over seeds; and how many of its cases ended learned (the curve's end at ≥ ``LEARNED`` of the
+    optimum), in all and per seed."""
+    by = _by_method(units)
+    methods = [m for m in DENSE_METHODS if by.get(m)] + sorted(set(by) - set(DENSE_METHODS))
+    if not methods:
+        return []
+    lines = ["| method | seeds | " + " | ".join(what for _, what in DENSE_READINGS)
+             + f" | cases ended learned (≥ {LEARNED:.2f}): all (per seed) |",
+             "|---|---|" + "---|" * (len(DENSE_READINGS) + 1)]
+    for method in methods:
+        pool = sorted(by[method], key=lambda u: u["seed"])
+        cells = [_fmt([v for v in (_transfer_mean(u, reading, "dense") for u in pool) if v is not None])
+                 for reading, _ in DENSE_READINGS]
+        ends = [[t["curve_end"] for t in u["transfers"].values()
+                 if t.get("reward") == "dense" and t.get("curve_end") is not None] for u in pool]
+        learned = [sum(end >= LEARNED for end in unit_ends) for unit_ends in ends]
+        cells.append(f"{sum(learned)} of {sum(map(len, ends))} ({' / '.join(map(str, learned))})")
+        lines.append(f"| `{method}` | {', '.join(str(u['seed']) for u in pool)} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def _late_note(unit: dict, task: str) -> str:
     share = unit.get("late_success", {}).get(task)
     return "" if share is None else f" (last {LATE_EPISODES} training episodes: {share:.0%} reached half the optimum)"
@@ -391,9 +434,7 @@ def verdicts(units: list[dict], reviewer_units: list[dict] = (), dense_units: li
                          "task 4)", "drago", values(by.get("drago", []), _zero_shot_tests), "continual",
                          values(by.get("continual", []), _zero_shot_tests)))
     dense = _by_method(dense_units)
-    for reading, what in (("equal_episodes", "few-shot at equal learner episodes"),
-                          ("equal_env_steps", "few-shot at equal env steps"),
-                          ("curve_mean", "mean over the learning curve")):
+    for reading, what in DENSE_READINGS:
         rows.append(_against(f"a retained DRAGO model learns the test tasks faster than `continual`'s (dense "
                              f"reward, {what}, mean of the four cases)", "drago",
                              values(dense.get("drago", []), lambda u: _transfer_mean(u, reading, "dense")),
@@ -468,6 +509,14 @@ def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), re
               for claim, verdict, numbers in verdicts(units, reviewer_units, dense_units, reviewer_2x_units)]
     lines += ["", "A claim is confirmed only where the 95% CIs over seeds separate; the transfer rows average each "
               "unit's four cases first."]
+    dense = dense_table(dense_units)
+    if dense:
+        lines += ["", "**Transfer that can learn, every method**: the four test cases with dense reward and "
+                  f"{max(u.get('transfer_episodes', 0) for u in dense_units)} learner episodes each, every reading a "
+                  "fraction of the case's optimum, each unit's mean over its four cases, then mean ± std [95% CI] "
+                  "over seeds; the curve's end is the mean of its last tenth of evaluations. Per case and seed in "
+                  "[`grid_dense_records_transfers.csv`](data/grid_dense_records_transfers.csv); the curves in the "
+                  "[dense transfers' report](grid-dense-report/report.md#transfer-learning-curves).", "", *dense]
     if (_docs / SCREENSHOT).is_file():
         lines += ["", f"The top of the report of the main study's records as a new user gets it: drawn by "
                   f"`.venv/bin/python docs/make_report_screenshots.py --in-fresh-clone --only {SCREENSHOT}`, which "

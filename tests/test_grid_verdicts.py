@@ -20,8 +20,7 @@ def unit(method: str, seed: int, old_rooms: float, final: float = 0.97, offset: 
     """A unit whose rooms 1-3 are covered at ``old_rooms`` after task 4, every room ended at ``final`` of its
     optimum, and (with ``transfer``) four dense transfer cases scoring ``transfer`` on every reading."""
     readings = {} if transfer is None else {
-        case: {"reward": "dense", "equal_episodes": transfer, "equal_env_steps": transfer, "curve_mean": transfer}
-        for case in CASES}
+        case: {"reward": "dense", **{reading: transfer for reading in grid.TRANSFER_READINGS}} for case in CASES}
     return {"method": method, "seed": seed, "threshold_offset": offset,
             "final": {room: final for room in grid.ROOMS},
             "coverage": {(4, room): old_rooms for room in grid.ROOMS[:3]},
@@ -74,7 +73,8 @@ def test_the_reviewer_study_and_the_dense_transfers_are_judged_against_continual
     rows = grid.verdicts(main, reviewer, dense)
     paid = row(rows, "the reviewer alone, paid against θ − 3,")
     assert paid[1] == "confirmed (CIs separate)" and paid[2].startswith("drago-no-rehearsal (θ − 3) 0.52")
-    for reading in ("few-shot at equal learner episodes", "few-shot at equal env steps", "mean over the learning"):
+    for reading in ("few-shot at equal learner episodes", "few-shot at equal env steps", "mean over the learning",
+                    "end of the learning curve"):
         claim, verdict, _ = next(r for r in rows if reading in r[0])
         assert "dense reward" in claim and verdict == "not separated by the CIs so far (2 and 3 of 3 seeds)"
 
@@ -96,3 +96,24 @@ def test_a_unit_without_all_four_dense_cases_is_left_out_of_the_transfer_claims(
     rows = grid.verdicts([], [], [partial, unit("drago", 2, 0.9, transfer=0.7), unit("continual", 1, 0.1, transfer=0.1),
                                   unit("continual", 2, 0.1, transfer=0.1)])
     assert row(rows, "a retained DRAGO model learns")[1] == "pending: 1 and 2 of 3 seeds recorded"
+
+
+def test_a_learning_curve_is_read_by_its_mean_and_by_its_last_tenth():
+    # 100 learner episodes evaluated after each, and before the first: the goal found late, the optimum reached
+    # for the last 10 evaluations; a curve too short for a tenth ends at its last evaluation
+    late = [0.0] * 91 + [1.0] * 10
+    assert grid.curve_readings(late) == {"curve_mean": 10 / 101, "curve_end": 1.0}
+    assert grid.curve_readings([0.0, 0.5, 0.9])["curve_end"] == 0.9
+    assert grid.curve_readings([]) == {"curve_mean": None, "curve_end": None}
+
+
+def test_the_dense_table_counts_the_cases_each_method_ended_learned():
+    learned = unit("drago", 1, 0.9, transfer=0.3)
+    for case, end in zip(CASES, (0.95, 0.80, 0.79, 0.05)):  # the bar is inclusive: two of four cases
+        learned["transfers"][case]["curve_end"] = end
+    table = grid.dense_table([learned, unit("drago", 2, 0.9, transfer=0.9), unit("scratch", 1, 0.0, transfer=0.1)])
+    drago = next(line for line in table if line.startswith("| `drago`"))
+    assert drago.endswith("| 6 of 8 (2 / 4) |") and "| 1, 2 |" in drago
+    assert drago.split("|")[-3].startswith(" 0.77 ± 0.18")  # the end: seed 1 ends at 0.65 (its four cases), seed 2 0.90
+    assert next(line for line in table if line.startswith("| `scratch`")).endswith("| 0 of 4 (0) |")
+    assert grid.dense_table([]) == []

@@ -341,6 +341,30 @@ def dense_table(units: list[dict]) -> list[str]:
     return lines
 
 
+def dense_cases_table(units: list[dict]) -> list[str]:
+    """Where each dense case's learning curve ended, per method and seed: which test task a retained model helps
+    with shows only case by case."""
+    by = _by_method(units)
+    methods = [m for m in DENSE_METHODS if by.get(m)] + sorted(set(by) - set(DENSE_METHODS))
+    cases = sorted({case for u in units for case, t in u["transfers"].items() if t.get("reward") == "dense"})
+    if not cases:
+        return []
+    lines = ["| case | " + " | ".join(f"`{m}`" for m in methods) + " |", "|---|" + "---|" * len(methods)]
+    for case in cases:
+        cells = []
+        for method in methods:
+            ends = [(u["seed"], u["transfers"].get(case, {}).get("curve_end"))
+                    for u in sorted(by[method], key=lambda u: u["seed"])]
+            ends = [(seed, end) for seed, end in ends if end is not None]
+            seeds = [seed for seed, _ in ends]
+            named = ("" if seeds == list(DEFAULT_SEEDS)
+                     else f"seed{'s' * (len(seeds) > 1)} {', '.join(map(str, seeds))}: ")
+            cells.append(named + " / ".join(f"{end:.2f}" for _, end in ends)
+                         + f", {sum(end >= LEARNED for _, end in ends)} of {len(ends)} learned" if ends else "–")
+        lines.append(f"| {case} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def _late_note(unit: dict, task: str) -> str:
     share = unit.get("late_success", {}).get(task)
     return "" if share is None else f" (last {LATE_EPISODES} training episodes: {share:.0%} reached half the optimum)"
@@ -516,7 +540,11 @@ def section(units: list[dict], folder: Path, reviewer_units: list[dict] = (), re
                   "fraction of the case's optimum, each unit's mean over its four cases, then mean ± std [95% CI] "
                   "over seeds; the curve's end is the mean of its last tenth of evaluations. Per case and seed in "
                   "[`grid_dense_records_transfers.csv`](data/grid_dense_records_transfers.csv); the curves in the "
-                  "[dense transfers' report](grid-dense-report/report.md#transfer-learning-curves).", "", *dense]
+                  "[dense transfers' report](grid-dense-report/report.md#transfer-learning-curves).", "", *dense,
+                  "", f"Where each case's learning curve ended (the mean of its last tenth), seeds "
+                  f"{' / '.join(map(str, DEFAULT_SEEDS))} unless named, and how many ended learned "
+                  f"(≥ {LEARNED:.2f}):", "",
+                  *dense_cases_table(dense_units)]
     if (_docs / SCREENSHOT).is_file():
         lines += ["", f"The top of the report of the main study's records as a new user gets it: drawn by "
                   f"`.venv/bin/python docs/make_report_screenshots.py --in-fresh-clone --only {SCREENSHOT}`, which "

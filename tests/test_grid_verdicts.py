@@ -117,3 +117,10 @@ def test_the_dense_table_counts_the_cases_each_method_ended_learned():
     assert drago.split("|")[-3].startswith(" 0.77 ± 0.18")  # the end: seed 1 ends at 0.65 (its four cases), seed 2 0.90
     assert next(line for line in table if line.startswith("| `scratch`")).endswith("| 0 of 4 (0) |")
     assert grid.dense_table([]) == []
+    units = [learned, unit("drago", 2, 0.9, transfer=0.9), unit("scratch", 1, 0.0, transfer=0.1)]
+    cases = grid.dense_cases_table(units)
+    # seeds 1-3 go unnamed; fewer are named
+    assert cases[2] == f"| {CASES[0]} | seeds 1, 2: 0.95 / 0.90, 2 of 2 learned | seed 1: 0.10, 0 of 1 learned |"
+    assert cases[4].startswith(f"| {CASES[2]} | seeds 1, 2: 0.79 / 0.90, 1 of 2 learned |")
+    full = grid.dense_cases_table([unit("continual", s, 0.1, transfer=0.85) for s in (1, 2, 3)])
+    assert full[2] == f"| {CASES[0]} | 0.85 / 0.85 / 0.85, 3 of 3 learned |"

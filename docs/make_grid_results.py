@@ -86,7 +86,8 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
                 block = json.loads(text).get("transfer") or {}
                 few_shot = block.get("few_shot") or {}
                 transfer_episodes = max(transfer_episodes, int((block.get("final") or {}).get("episode") or 0))
-                curve = [float(r["fraction_of_optimal"]) for r in _csv(files.get(f"transfer/{case}/eval.csv", ""))
+                curve = [(int(r["episode"]), float(r["fraction_of_optimal"]))
+                         for r in _csv(files.get(f"transfer/{case}/eval.csv", ""))
                          if r.get("fraction_of_optimal") not in (None, "")]
                 transfers[case] = {"reward": block.get("reward"),
                                    **{reading: (few_shot.get(reading) or {}).get("fraction_of_optimal")
@@ -132,14 +133,20 @@ def load(folder: Path, preset: str = "minigrid-cpu") -> list[dict]:
 TRANSFER_READINGS = ("equal_episodes", "equal_env_steps", "curve_mean", "curve_end")
 
 
-def curve_readings(curve: list[float]) -> dict[str, float | None]:
-    """A transfer's learning curve (its evaluations in order, fractions of the optimum) read twice: its mean, how
-    fast it learned rather than where it stood at one episode; and its end, the mean of its last tenth of
-    evaluations (at least one), where it got to. A transfer on the grid either finds its goal and climbs to the
+def curve_readings(curve: list[tuple[int, float]]) -> dict[str, float | None]:
+    """A transfer's learning curve, its evaluations in order as (learner episodes, fraction of the optimum), read
+    three ways: its mean, how fast it learned rather than where it stood at one episode; its end, the mean of its
+    last tenth of evaluations (at least one), where it got to; and the learner episodes it took to first evaluate
+    at half the optimum (None if it never did). A transfer on the grid either finds its goal and climbs to the
     optimum or never finds it, and the mean alone cannot tell a late climb from a half-way plateau."""
     if not curve:
-        return {"curve_mean": None, "curve_end": None}
-    return {"curve_mean": float(np.mean(curve)), "curve_end": float(np.mean(curve[-max(1, len(curve) // 10):]))}
+        return {"curve_mean": None, "curve_end": None, "episodes_to_half": None}
+    fractions = [fraction for _, fraction in curve]
+    return {"curve_mean": float(np.mean(fractions)),
+            "curve_end": float(np.mean(fractions[-max(1, len(fractions) // 10):])),
+            "episodes_to_half": next((episode for episode, fraction in curve if fraction >= 0.5), None)}
+
+
 #: The grid's test tasks (the transfer cases' tasks) the zero-shot claim averages over.
 TEST_TASKS = ("room1to2", "room1to3", "room3to4")
 #: The screenshot of the records' report, drawn in a fresh clone (docs/make_report_screenshots.py).
@@ -175,7 +182,7 @@ WHAT = {
                                   "fraction of the DP optimum",
     "grid_records_transfers.csv": "each transfer case's few-shot return at equal learner episodes and at equal env "
                                   "steps, the mean over its learning curve and the mean of the curve's last tenth, "
-                                  "as fractions of the DP optimum",
+                                  "as fractions of the DP optimum, and the learner episodes to half the optimum",
     "grid_records_components.csv": "per-component retention (drago eval components) of every task seen after each "
                                    "stage",
     "grid_records_swap.csv": "the swap test of every earlier task after each stage, returns as fractions of the DP "
@@ -191,7 +198,8 @@ WHAT_REVIEWER_2X = {"grid_reviewer_2x_records_coverage.csv": "drago-no-rehearsal
 WHAT_DENSE = {"grid_dense_records_transfers.csv": "the transfer cases with dense reward: few-shot return at equal "
                                                   "learner episodes and at equal env steps, the mean over the "
                                                   "learning curve and the mean of the curve's last tenth, as "
-                                                  "fractions of the optimum"}
+                                                  "fractions of the optimum, and the learner episodes to half the "
+                                                  "optimum"}
 #: The commands that make each study's records (run from the repository's root). Each study needs a folder of
 #: its own: one folder cannot hold two runs of a method and seed with different settings.
 STUDY = "drago study minigrid-cpu --seeds 1-3 --jobs 2 train.threads=1"
@@ -247,7 +255,7 @@ def write_data(units: list[dict]) -> list[Path]:
     return out
 
 
-TRANSFER_COLUMNS = ("method", "seed", "case", "reward", *TRANSFER_READINGS)
+TRANSFER_COLUMNS = ("method", "seed", "case", "reward", *TRANSFER_READINGS, "episodes_to_half")
 
 
 def _transfer_rows(units: list[dict]) -> list[dict]:

@@ -98,13 +98,15 @@ def test_a_unit_without_all_four_dense_cases_is_left_out_of_the_transfer_claims(
     assert row(rows, "a retained DRAGO model learns")[1] == "pending: 1 and 2 of 3 seeds recorded"
 
 
-def test_a_learning_curve_is_read_by_its_mean_and_by_its_last_tenth():
+def test_a_learning_curve_is_read_by_its_mean_its_last_tenth_and_when_it_reached_half():
     # 100 learner episodes evaluated after each, and before the first: the goal found late, the optimum reached
     # for the last 10 evaluations; a curve too short for a tenth ends at its last evaluation
-    late = [0.0] * 91 + [1.0] * 10
-    assert grid.curve_readings(late) == {"curve_mean": 10 / 101, "curve_end": 1.0}
-    assert grid.curve_readings([0.0, 0.5, 0.9])["curve_end"] == 0.9
-    assert grid.curve_readings([]) == {"curve_mean": None, "curve_end": None}
+    late = [(episode, 0.0) for episode in range(91)] + [(episode, 1.0) for episode in range(91, 101)]
+    assert grid.curve_readings(late) == {"curve_mean": 10 / 101, "curve_end": 1.0, "episodes_to_half": 91}
+    never = grid.curve_readings([(0, 0.0), (5, 0.49), (10, 0.3)])
+    assert never["curve_end"] == 0.3 and never["episodes_to_half"] is None
+    assert grid.curve_readings([(0, 0.0), (5, 0.5)])["episodes_to_half"] == 5  # evaluated every 5 episodes
+    assert grid.curve_readings([]) == {"curve_mean": None, "curve_end": None, "episodes_to_half": None}
 
 
 def test_the_dense_table_counts_the_cases_each_method_ended_learned():

@@ -314,7 +314,7 @@ def forgot_table(units: list[dict]) -> list[str]:
     """Which part forgot: each component's reading on the earlier tasks after the last stage, per method, mean
     over those tasks per seed, then mean ± std [95% CI] over seeds."""
     by = _by_method(units)
-    methods = [m for m in FORGOT_METHODS if by.get(m)] + sorted(set(by) - set(FORGOT_METHODS))
+    methods = _ordered(by, FORGOT_METHODS)
     if not methods:
         return []
     lines = ["| part (earlier rooms after the last task) | " + " | ".join(f"`{m}`" for m in methods) + " |",
@@ -331,7 +331,7 @@ def dense_table(units: list[dict]) -> list[str]:
     std [95% CI] over seeds; and how many of its cases ended learned (the curve's end at ≥ ``LEARNED`` of the
     optimum), in all and per seed."""
     by = _by_method(units)
-    methods = [m for m in DENSE_METHODS if by.get(m)] + sorted(set(by) - set(DENSE_METHODS))
+    methods = _ordered(by, DENSE_METHODS)
     if not methods:
         return []
     lines = ["| method | seeds | " + " | ".join(what for _, what in DENSE_READINGS)
@@ -353,7 +353,7 @@ def dense_cases_table(units: list[dict]) -> list[str]:
     """Where each dense case's learning curve ended, per method and seed: which test task a retained model helps
     with shows only case by case."""
     by = _by_method(units)
-    methods = [m for m in DENSE_METHODS if by.get(m)] + sorted(set(by) - set(DENSE_METHODS))
+    methods = _ordered(by, DENSE_METHODS)
     cases = sorted({case for u in units for case, t in u["transfers"].items() if t.get("reward") == "dense"})
     if not cases:
         return []
@@ -376,6 +376,11 @@ def dense_cases_table(units: list[dict]) -> list[str]:
 def _late_note(unit: dict, task: str) -> str:
     share = unit.get("late_success", {}).get(task)
     return "" if share is None else f" (last {LATE_EPISODES} training episodes: {share:.0%} reached half the optimum)"
+
+
+def _ordered(by: dict[str, list[dict]], first: tuple[str, ...]) -> list[str]:
+    """The methods with units in ``by``: those of ``first`` in its order, then any others by name."""
+    return [m for m in first if by.get(m)] + sorted(set(by) - set(first))
 
 
 def _by_method(units: list[dict]) -> dict[str, list[dict]]:

@@ -113,13 +113,13 @@ def test_the_dense_table_counts_the_cases_each_method_ended_learned():
     learned = unit("drago", 1, 0.9, transfer=0.3)
     for case, end in zip(CASES, (0.95, 0.80, 0.79, 0.05)):  # the bar is inclusive: two of four cases
         learned["transfers"][case]["curve_end"] = end
-    table = grid.dense_table([learned, unit("drago", 2, 0.9, transfer=0.9), unit("scratch", 1, 0.0, transfer=0.1)])
+    units = [learned, unit("drago", 2, 0.9, transfer=0.9), unit("scratch", 1, 0.0, transfer=0.1)]
+    table = grid.dense_table(units)
     drago = next(line for line in table if line.startswith("| `drago`"))
     assert drago.endswith("| 6 of 8 (2 / 4) |") and "| 1, 2 |" in drago
     assert drago.split("|")[-3].startswith(" 0.77 ± 0.18")  # the end: seed 1 ends at 0.65 (its four cases), seed 2 0.90
     assert next(line for line in table if line.startswith("| `scratch`")).endswith("| 0 of 4 (0) |")
     assert grid.dense_table([]) == []
-    units = [learned, unit("drago", 2, 0.9, transfer=0.9), unit("scratch", 1, 0.0, transfer=0.1)]
     cases = grid.dense_cases_table(units)
     # seeds 1-3 go unnamed; fewer are named
     assert cases[2] == f"| {CASES[0]} | seeds 1, 2: 0.95 / 0.90, 2 of 2 learned | seed 1: 0.10, 0 of 1 learned |"

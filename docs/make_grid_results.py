@@ -338,7 +338,7 @@ def dense_table(units: list[dict]) -> list[str]:
              + f" | cases ended learned (≥ {LEARNED:.2f}): all (per seed) |",
              "|---|---|" + "---|" * (len(DENSE_READINGS) + 1)]
     for method in methods:
-        pool = sorted(by[method], key=lambda u: u["seed"])
+        pool = by[method]
         cells = [_fmt([v for v in (_transfer_mean(u, reading, "dense") for u in pool) if v is not None])
                  for reading, _ in DENSE_READINGS]
         ends = [[t["curve_end"] for t in u["transfers"].values()
@@ -361,14 +361,13 @@ def dense_cases_table(units: list[dict]) -> list[str]:
     for case in cases:
         cells = []
         for method in methods:
-            ends = [(u["seed"], u["transfers"].get(case, {}).get("curve_end"))
-                    for u in sorted(by[method], key=lambda u: u["seed"])]
-            ends = [(seed, end) for seed, end in ends if end is not None]
+            ends = [(u["seed"], end) for u in by[method]
+                    if (end := u["transfers"].get(case, {}).get("curve_end")) is not None]
             seeds = [seed for seed, _ in ends]
             named = ("" if seeds == list(DEFAULT_SEEDS)
                      else f"seed{'s' * (len(seeds) > 1)} {', '.join(map(str, seeds))}: ")
-            cells.append(named + " / ".join(f"{end:.2f}" for _, end in ends)
-                         + f", {sum(end >= LEARNED for _, end in ends)} of {len(ends)} learned" if ends else "–")
+            cells.append((named + " / ".join(f"{end:.2f}" for _, end in ends)
+                          + f", {sum(end >= LEARNED for _, end in ends)} of {len(ends)} learned") if ends else "–")
         lines.append(f"| {case} | " + " | ".join(cells) + " |")
     return lines
 
@@ -384,8 +383,9 @@ def _ordered(by: dict[str, list[dict]], first: tuple[str, ...]) -> list[str]:
 
 
 def _by_method(units: list[dict]) -> dict[str, list[dict]]:
+    """Each method's units in seed order, the order every table and verdict shows them in."""
     by = defaultdict(list)
-    for u in units:
+    for u in sorted(units, key=lambda u: u["seed"]):
         by[u["method"]].append(u)
     return by
 
@@ -429,7 +429,7 @@ def verdicts(units: list[dict], reviewer_units: list[dict] = (), dense_units: li
     rows = []
     for method in ("drago", "drago-no-rehearsal", "drago-no-reviewer"):
         claim = f"`{method}` learns every room (≥ {LEARNED:.2f} of the optimum at each task's end)"
-        mine = sorted(by.get(method, []), key=lambda u: u["seed"])
+        mine = by.get(method, [])
         if not mine:
             rows.append((claim, "pending: no seed recorded", ""))
             continue
